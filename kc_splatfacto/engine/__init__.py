@@ -1,0 +1,1 @@
+"""Engine layer: trainer loop, optimizers and schedules, checkpoints, evaluation, logs."""

@@ -1,0 +1,1 @@
+"""Model layer: Gaussian parameters, the Splatfacto-like model, density control."""

@@ -1,0 +1,94 @@
+"""Entry-point discovery of method and dataparser specifications (nerfstudio's ``discover_methods`` pattern).
+
+A third-party package registers its own method in its ``pyproject.toml``::
+
+    [project.entry-points."kc_splatfacto.method_configs"]
+    my-method = "my_package.configs:my_method"
+
+where ``my_method`` is a :class:`MethodSpecification`. Extra specifications can also be named at run time, without
+installing anything, through environment variables holding comma-separated ``name=module:attribute`` items::
+
+    KC_SPLATFACTO_METHOD_CONFIGS="my-method=my_package.configs:my_method"
+    KC_SPLATFACTO_DATAPARSER_CONFIGS="my-format=my_package.data:my_parser"
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+from dataclasses import dataclass
+from importlib.metadata import entry_points
+from typing import Any
+
+METHOD_GROUP = "kc_splatfacto.method_configs"
+DATAPARSER_GROUP = "kc_splatfacto.dataparser_configs"
+METHOD_ENV = "KC_SPLATFACTO_METHOD_CONFIGS"
+DATAPARSER_ENV = "KC_SPLATFACTO_DATAPARSER_CONFIGS"
+
+
+@dataclass
+class MethodSpecification:
+    """A method: the config that builds it, and a one-line description shown by ``kc-train --help``."""
+
+    config: Any
+    description: str
+
+
+@dataclass
+class DataParserSpecification:
+    """A dataparser: its config (a dataclass with ``setup()``) and a one-line description."""
+
+    config: Any
+    description: str
+
+
+class RegistryError(RuntimeError):
+    """A registered specification could not be loaded or has the wrong type."""
+
+
+def _load_object(name: str, target: str, origin: str) -> Any:
+    module_name, _, attribute = target.partition(":")
+    if not module_name or not attribute:
+        raise RegistryError(f"{origin}: '{name}={target}' must have the form name=module:attribute")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise RegistryError(f"{origin}: cannot import module '{module_name}' for '{name}': {exc}") from exc
+    try:
+        return getattr(module, attribute)
+    except AttributeError as exc:
+        raise RegistryError(f"{origin}: module '{module_name}' has no attribute '{attribute}' (for '{name}')") from exc
+
+
+def _discover(group: str, env_var: str, expected: type) -> dict[str, Any]:
+    found: dict[str, Any] = {}
+    for ep in entry_points(group=group):
+        try:
+            spec = ep.load()
+        except Exception as exc:  # a broken third-party plugin must name itself
+            raise RegistryError(f"entry point '{ep.name}' in group '{group}' ({ep.value}) failed to load: {exc}") from exc
+        if not isinstance(spec, expected):
+            raise RegistryError(
+                f"entry point '{ep.name}' in group '{group}' ({ep.value}) is a {type(spec).__name__}, "
+                f"expected a {expected.__name__}"
+            )
+        found[ep.name] = spec
+    for item in filter(None, (s.strip() for s in os.environ.get(env_var, "").split(","))):
+        name, sep, target = item.partition("=")
+        if not sep:
+            raise RegistryError(f"{env_var}: '{item}' must have the form name=module:attribute")
+        spec = _load_object(name.strip(), target.strip(), env_var)
+        if not isinstance(spec, expected):
+            raise RegistryError(f"{env_var}: '{item}' is a {type(spec).__name__}, expected a {expected.__name__}")
+        found[name.strip()] = spec
+    return dict(sorted(found.items()))
+
+
+def discover_methods() -> dict[str, MethodSpecification]:
+    """All registered methods, by name: entry points of ``kc_splatfacto.method_configs`` plus ``KC_SPLATFACTO_METHOD_CONFIGS``."""
+    return _discover(METHOD_GROUP, METHOD_ENV, MethodSpecification)
+
+
+def discover_dataparsers() -> dict[str, DataParserSpecification]:
+    """All registered dataparsers, by name: entry points of ``kc_splatfacto.dataparser_configs`` plus the env variable."""
+    return _discover(DATAPARSER_GROUP, DATAPARSER_ENV, DataParserSpecification)

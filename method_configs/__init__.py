@@ -1,0 +1,1 @@
+"""Method specifications registered through the ``kc_splatfacto.method_configs`` entry-point group."""
