@@ -172,6 +172,11 @@ def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
     try:
         reconstruction = pycolmap.Reconstruction(str(model_dir))
     except Exception as exc:
+        bad = _images_with_non_finite_poses(model_dir / "images.txt")
+        if bad:
+            raise DataParserError(
+                f"the poses of images {', '.join(bad)} in {model_dir / 'images.txt'} contain NaN/inf: fix or remove them"
+            ) from exc
         raise DataParserError(f"could not read the COLMAP model in {model_dir}: {exc}") from exc
     cameras = {cid: _camera_from_pycolmap(cid, cam, model_dir) for cid, cam in reconstruction.cameras.items()}
     images = []
@@ -196,6 +201,25 @@ def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
     else:
         xyz, rgb = np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
     return ColmapModel(model_dir, cameras, images, xyz, rgb)
+
+
+def _images_with_non_finite_poses(images_txt: Path) -> list[str]:
+    """Names of images whose pose line holds a non-finite number (pycolmap's text reader only says it failed)."""
+    if not images_txt.is_file():
+        return []
+    bad = []
+    lines = [line for line in images_txt.read_text(errors="replace").splitlines() if not line.startswith("#")]
+    for line in lines[0::2]:  # pose lines alternate with 2D point lines
+        fields = line.split()
+        if len(fields) < 10:
+            continue
+        try:
+            finite = np.isfinite([float(v) for v in fields[1:8]]).all()
+        except ValueError:
+            finite = False
+        if not finite:
+            bad.append(fields[9])
+    return bad
 
 
 # ----------------------------------------------------------------------------------------------------------------

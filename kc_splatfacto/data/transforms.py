@@ -188,7 +188,7 @@ class TransformsDataParser(DataParser):
             chosen = {"train": train, "val": val or test, "test": test or val}[split]
             normalize_idx = sorted(set(train) | set(val) | set(test))
         else:
-            names = [str(p.relative_to(base)) for p in paths]
+            names = [str(frame["file_path"]) for _, frame in frames]
             train, evals = split_indices(
                 names, self.config.eval_mode, self.config.eval_interval, self.config.train_split_fraction
             )
