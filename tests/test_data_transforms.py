@@ -212,3 +212,12 @@ def test_dataparser_transforms_json_round_trip(castle_p30, tmp_path):
     assert np.abs(train.points3d_xyz.double().numpy() - mapped).sum(axis=1).min() < 1e-5
     with pytest.raises(DataParserError, match="does not exist"):
         read_dataparser_transforms(tmp_path / "nope.json")
+
+
+def test_single_camera_normalizes_without_dividing_by_zero():
+    c2w = np.eye(4)
+    c2w[:3, 3] = [3.0, -2.0, 5.0]
+    normalization = normalize_poses(c2w[None])
+    assert normalization.scale == 1.0  # zero extent: unit scale, never inf/NaN
+    assert np.allclose(normalization.apply_to_c2w(c2w[None])[0, :3, 3], 0.0)
+    assert np.isfinite(normalization.transform).all()
