@@ -146,3 +146,50 @@ def test_downscale_cache_is_reused_and_written_outside_read_only_scenes(fountain
     assert torch.allclose(outputs.cameras.Ks[0, 0, 0], torch.tensor(FOUNTAIN_K[0] / 4))
     assert read_image(outputs.image_filenames[0]).shape == (128, 192, 3)
     assert not list(outputs.image_filenames[0].parent.glob(".*.tmp"))  # atomic writes leave no temp files
+
+
+def nerfstudio_colmap_reference(world_to_cameras):
+    """A float32 torch transcription of nerfstudio's COLMAP path (colmap_dataparser + camera_utils defaults):
+    OpenCV -> OpenGL flip, world row permutation, orient "up", centre "poses", auto scale."""
+    poses = []
+    for w2c in world_to_cameras:
+        c2w = np.linalg.inv(w2c)
+        c2w[0:3, 1:3] *= -1
+        c2w = c2w[np.array([1, 0, 2, 3]), :]
+        c2w[2, :] *= -1
+        poses.append(c2w)
+    poses = torch.from_numpy(np.array(poses).astype(np.float32))
+    mean_origin = poses[..., :3, 3].mean(dim=0)
+    up = poses[:, :3, 1].mean(dim=0)
+    a, b = up / up.norm(), torch.tensor([0.0, 0.0, 1.0])
+    v = torch.linalg.cross(a, b)
+    v = v / v.norm()
+    skew = torch.tensor([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    theta = torch.acos(torch.clip(torch.dot(a, b), -1, 1))
+    rotation = torch.eye(3) + torch.sin(theta) * skew + (1 - torch.cos(theta)) * (skew @ skew)
+    transform = torch.cat([rotation, rotation @ -mean_origin[..., None]], dim=-1)
+    oriented = transform @ poses
+    scale = 1.0 / float(torch.max(torch.abs(oriented[:, :3, 3])))
+    oriented[:, :3, 3] *= scale
+    applied = torch.eye(4)[:3, :][torch.tensor([1, 0, 2]), :]
+    applied[2, :] *= -1
+    transform = transform @ torch.cat([applied, torch.tensor([[0, 0, 0, 1.0]])], 0)
+    return oriented, transform, scale
+
+
+def test_fountain_normalization_matches_nerfstudio_reference(fountain_p11):
+    pycolmap = pytest.importorskip("pycolmap")
+    reconstruction = pycolmap.Reconstruction(str(fountain_p11 / "sparse" / "0"))
+    images = sorted(reconstruction.images.values(), key=lambda im: im.name)
+    w2cs = []
+    for image in images:
+        w2c = np.eye(4)
+        w2c[:3] = image.cam_from_world().matrix()
+        w2cs.append(w2c)
+    ref_c2w_gl, ref_transform, ref_scale = nerfstudio_colmap_reference(w2cs)
+    outputs = ColmapDataParserConfig(data=fountain_p11, eval_mode="all").setup().get_dataparser_outputs("train")
+    c2w_gl = outputs.cameras.camera_to_worlds().clone()
+    c2w_gl[:, :3, 1:3] *= -1
+    assert torch.allclose(c2w_gl[:, :3, :4], ref_c2w_gl[:, :3, :4], atol=1e-5)
+    assert torch.allclose(outputs.dataparser_transform, ref_transform, atol=1e-5)
+    assert outputs.dataparser_scale == pytest.approx(ref_scale, rel=1e-6)
