@@ -150,12 +150,12 @@ def test_downscale_cache_is_reused_and_written_outside_read_only_scenes(fountain
 
 def nerfstudio_colmap_reference(world_to_cameras):
     """A float32 torch transcription of nerfstudio's COLMAP path (colmap_dataparser + camera_utils defaults):
-    OpenCV -> OpenGL flip, world row permutation, orient "up", centre "poses", auto scale."""
+    OpenCV -> OpenGL flip, COLMAP world convention (x, z, -y), orient "up", centre "poses", auto scale."""
     poses = []
     for w2c in world_to_cameras:
         c2w = np.linalg.inv(w2c)
         c2w[0:3, 1:3] *= -1
-        c2w = c2w[np.array([1, 0, 2, 3]), :]
+        c2w = c2w[np.array([0, 2, 1, 3]), :]  # assume_colmap_world_coordinate_convention (the default)
         c2w[2, :] *= -1
         poses.append(c2w)
     poses = torch.from_numpy(np.array(poses).astype(np.float32))
@@ -171,7 +171,7 @@ def nerfstudio_colmap_reference(world_to_cameras):
     oriented = transform @ poses
     scale = 1.0 / float(torch.max(torch.abs(oriented[:, :3, 3])))
     oriented[:, :3, 3] *= scale
-    applied = torch.eye(4)[:3, :][torch.tensor([1, 0, 2]), :]
+    applied = torch.eye(4)[:3, :][torch.tensor([0, 2, 1]), :]
     applied[2, :] *= -1
     transform = transform @ torch.cat([applied, torch.tensor([[0, 0, 0, 1.0]])], 0)
     return oriented, transform, scale

@@ -170,9 +170,10 @@ def opencv_to_opengl(c2w: np.ndarray) -> np.ndarray:
     return out
 
 
-# nerfstudio's COLMAP parser first swaps world x/y and negates z (nerfstudio issue #1504); the orientation then
-# depends on this starting frame, so COLMAP-based parsers apply it too to land in nerfstudio's exact world.
-COLMAP_APPLIED_TRANSFORM = np.array([[0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0]])
+# nerfstudio's COLMAP parser (``assume_colmap_world_coordinate_convention=True``, its default) first maps COLMAP's
+# gravity guess (-y) to +z: world (x, y, z) -> (x, z, -y). The "up" orientation's shortest-arc rotation depends on
+# this starting frame (it fixes the azimuth), so COLMAP-based parsers apply it too, to land in nerfstudio's world.
+COLMAP_APPLIED_TRANSFORM = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, -1.0, 0.0, 0.0]])
 
 
 @dataclass

@@ -5,7 +5,7 @@ Layout::
     <scene>/images/            the images the model was built from (names as in images.txt, sub-folders allowed)
     <scene>/sparse/0/          cameras, images, points3D (.bin or .txt); also found at colmap/sparse/0 or sparse/
 
-Splits (``eval_mode``, nerfstudio's names and rules, images sorted by name):
+Splits (``eval_mode``, nerfstudio's names and rules, images in COLMAP image-id order as nerfstudio):
 ``interval`` every ``eval_interval``-th image (index % 8 == 0) is eval, the rest train (the default);
 ``fraction`` ``ceil(n * train_split_fraction)`` images evenly spaced over the sorted list train, the rest eval;
 ``filename`` names containing "train" are train, names containing "eval" are eval (others are an error);
@@ -90,7 +90,7 @@ class ColmapModel:
     Attributes:
         path: the model folder.
         cameras: camera id -> :class:`ColmapCamera`.
-        images: registered images sorted by name.
+        images: registered images in image-id order (nerfstudio's order for splits).
         points_xyz: [M,3] float64 world points; points_rgb: [M,3] uint8 colours.
     """
 
@@ -180,7 +180,7 @@ def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
         raise DataParserError(f"could not read the COLMAP model in {model_dir}: {exc}") from exc
     cameras = {cid: _camera_from_pycolmap(cid, cam, model_dir) for cid, cam in reconstruction.cameras.items()}
     images = []
-    for image in reconstruction.images.values():
+    for _, image in sorted(reconstruction.images.items()):
         pose = image.cam_from_world() if callable(image.cam_from_world) else image.cam_from_world
         w2c = np.eye(4)
         w2c[:3, :4] = np.asarray(pose.matrix(), np.float64)
@@ -189,7 +189,6 @@ def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
         if image.camera_id not in cameras:
             raise DataParserError(f"image '{image.name}' in {model_dir} names unknown camera {image.camera_id}")
         images.append(ColmapImage(image.name, int(image.camera_id), w2c))
-    images.sort(key=lambda im: im.name)
     if load_points and len(reconstruction.points3D) > 0:
         points = list(reconstruction.points3D.values())
         xyz = np.array([p.xyz for p in points], np.float64).reshape(-1, 3)
