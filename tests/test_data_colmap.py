@@ -42,19 +42,28 @@ def test_fountain_eval_modes(fountain_p11, eval_mode, train, test):
     assert torch.equal(train_out.dataparser_transform, test_out.dataparser_transform)
     centers = torch.cat([train_out.cameras.centers(), test_out.cameras.centers()])
     assert centers.abs().max().item() <= 1.0 + 1e-5
-    assert torch.allclose(train_out.cameras.Ks[0], torch.tensor(
-        [[FOUNTAIN_K[0], 0, FOUNTAIN_K[2]], [0, FOUNTAIN_K[1], FOUNTAIN_K[3]], [0, 0, 1.0]]))
+    assert torch.allclose(
+        train_out.cameras.Ks[0],
+        torch.tensor([[FOUNTAIN_K[0], 0, FOUNTAIN_K[2]], [0, FOUNTAIN_K[1], FOUNTAIN_K[3]], [0, 0, 1.0]]),
+    )
 
 
 def test_fountain_filename_mode(fountain_p11, tmp_path):
     with pytest.raises(DataParserError, match="'0000.jpg' has neither"):
         ColmapDataParserConfig(data=fountain_p11, eval_mode="filename").setup().get_dataparser_outputs("train")
     renamed = scene_variant(
-        fountain_p11, tmp_path / "scene", with_lists=False,
+        fountain_p11,
+        tmp_path / "scene",
+        with_lists=False,
         rename=lambda n: ("eval_" if int(n[:4]) % 3 == 0 else "train_") + n,
     )
     parser = ColmapDataParserConfig(data=renamed, eval_mode="filename").setup()
-    assert names(parser.get_dataparser_outputs("test")) == ["eval_0000.jpg", "eval_0003.jpg", "eval_0006.jpg", "eval_0009.jpg"]
+    assert names(parser.get_dataparser_outputs("test")) == [
+        "eval_0000.jpg",
+        "eval_0003.jpg",
+        "eval_0006.jpg",
+        "eval_0009.jpg",
+    ]
     assert len(parser.get_dataparser_outputs("train").image_filenames) == 7
 
 

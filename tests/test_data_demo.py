@@ -58,7 +58,7 @@ def test_demo_split_is_12_train_12_test_alternating(demo_parser):
 
 
 def test_demo_regenerated_with_same_seed_is_identical(tmp_path):
-    small = dict(width=64, height=48, num_points=300)
+    small = {"width": 64, "height": 48, "num_points": 300}
     first = DemoDataParserConfig(demo_cache_dir=tmp_path / "a", **small).setup().get_dataparser_outputs("train")
     again = DemoDataParserConfig(demo_cache_dir=tmp_path / "b", **small).setup().get_dataparser_outputs("train")
     assert first.image_filenames[0].parent != again.image_filenames[0].parent  # really generated twice

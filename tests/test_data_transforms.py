@@ -35,8 +35,11 @@ def write_transforms(folder, outputs_list, extra=None, per_frame=False):
     meta = {"camera_model": "OPENCV", "aabb_scale": 16}
     for outputs in outputs_list:
         for path, c2w, K, w, h in zip(
-            outputs.image_filenames, opengl_c2w(outputs.cameras.viewmats), outputs.cameras.Ks.double().numpy(),
-            outputs.cameras.widths.tolist(), outputs.cameras.heights.tolist(),
+            outputs.image_filenames,
+            opengl_c2w(outputs.cameras.viewmats),
+            outputs.cameras.Ks.double().numpy(),
+            outputs.cameras.widths.tolist(),
+            outputs.cameras.heights.tolist(),
         ):
             frame = {"file_path": str(path), "transform_matrix": c2w.tolist()}
             intrinsics = {"fl_x": K[0, 0], "fl_y": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "w": w, "h": h}
@@ -141,10 +144,21 @@ def test_transforms_bad_inputs(tmp_path):
         TransformsDataParserConfig(data=tmp_path).setup().get_dataparser_outputs("train")
     (tmp_path / "img.png").write_bytes(b"")
     frame = {"file_path": "img.png", "transform_matrix": np.eye(4).tolist()}
-    (tmp_path / "transforms.json").write_text(json.dumps({"frames": [frame], "fl_x": 50, "cx": 5, "cy": 5, "w": 10, "h": 10}))
+    (tmp_path / "transforms.json").write_text(
+        json.dumps({"frames": [frame], "fl_x": 50, "cx": 5, "cy": 5, "w": 10, "h": 10})
+    )
     with pytest.raises(DataParserError, match="'fl_y'"):
         TransformsDataParserConfig(data=tmp_path, eval_mode="all").setup().get_dataparser_outputs("train")
-    fisheye = {"frames": [frame], "camera_model": "OPENCV_FISHEYE", "fl_x": 5, "fl_y": 5, "cx": 5, "cy": 5, "w": 10, "h": 10}
+    fisheye = {
+        "frames": [frame],
+        "camera_model": "OPENCV_FISHEYE",
+        "fl_x": 5,
+        "fl_y": 5,
+        "cx": 5,
+        "cy": 5,
+        "w": 10,
+        "h": 10,
+    }
     (tmp_path / "transforms.json").write_text(json.dumps(fisheye))
     with pytest.raises(DataParserError, match="OPENCV_FISHEYE"):
         TransformsDataParserConfig(data=tmp_path, eval_mode="all").setup().get_dataparser_outputs("train")
@@ -157,6 +171,7 @@ def test_transforms_bad_inputs(tmp_path):
 # ---------------------------------------------------------------------------------------------------------------
 # normalization and the transform file
 # ---------------------------------------------------------------------------------------------------------------
+
 
 def test_rotation_matrix_between_matches_scipy_shortest_arc():
     rotation = pytest.importorskip("scipy.spatial.transform").Rotation
@@ -179,7 +194,7 @@ def test_normalization_is_nerfstudio_up_poses_unit_cube():
     c2w_gl = np.tile(np.eye(4), (9, 1, 1))
     c2w_gl[:, :3, :3] = rotation.random(9, random_state=5).as_matrix()
     c2w_gl[:, :3, 3] = rng.normal(size=(9, 3)) * 4 + 10
-    oriented, transform = auto_orient_and_center_poses(c2w_gl)
+    oriented, _ = auto_orient_and_center_poses(c2w_gl)
     up = oriented[:, :3, 1].mean(0)
     assert np.allclose(up / np.linalg.norm(up), [0, 0, 1], atol=1e-9)
     assert np.allclose(oriented[:, :3, 3].mean(0), 0, atol=1e-9)

@@ -33,7 +33,6 @@ from kc_splatfacto.data.base import (
     DataParser,
     DataParserConfig,
     DataParserError,
-    PoseNormalization,
     make_cameras,
     normalize_poses,
     scene_scale_of,
@@ -106,7 +105,7 @@ class ColmapModel:
 
 
 def find_model_dir(scene: Path, configured: Path | None, candidates: tuple[str, ...] = DEFAULT_MODEL_DIRS) -> Path:
-    """The COLMAP model folder of ``scene``: ``configured`` (relative to the scene) or the first candidate holding one."""
+    """The COLMAP model folder of ``scene``: ``configured`` (relative to it) or the first candidate holding one."""
     if configured is not None:
         path = configured if Path(configured).is_absolute() else scene / configured
         if not has_model(path):
@@ -175,7 +174,8 @@ def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
         bad = _images_with_non_finite_poses(model_dir / "images.txt")
         if bad:
             raise DataParserError(
-                f"the poses of images {', '.join(bad)} in {model_dir / 'images.txt'} contain NaN/inf: fix or remove them"
+                f"the poses of images {', '.join(bad)} in {model_dir / 'images.txt'} contain NaN/inf: "
+                "fix or remove them"
             ) from exc
         raise DataParserError(f"could not read the COLMAP model in {model_dir}: {exc}") from exc
     cameras = {cid: _camera_from_pycolmap(cid, cam, model_dir) for cid, cam in reconstruction.cameras.items()}
@@ -185,7 +185,9 @@ def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
         w2c = np.eye(4)
         w2c[:3, :4] = np.asarray(pose.matrix(), np.float64)
         if not np.isfinite(w2c).all():
-            raise DataParserError(f"the pose of image '{image.name}' in {model_dir} contains NaN/inf: fix images.txt/.bin")
+            raise DataParserError(
+                f"the pose of image '{image.name}' in {model_dir} contains NaN/inf: fix images.txt/.bin"
+            )
         if image.camera_id not in cameras:
             raise DataParserError(f"image '{image.name}' in {model_dir} names unknown camera {image.camera_id}")
         images.append(ColmapImage(image.name, int(image.camera_id), w2c))
@@ -225,6 +227,7 @@ def _images_with_non_finite_poses(images_txt: Path) -> list[str]:
 # Undistortion
 # ----------------------------------------------------------------------------------------------------------------
 
+
 def undistorted_pinhole(camera: ColmapCamera) -> tuple[np.ndarray, tuple[int, int, int, int]]:
     """The pinhole that OpenCV undistorts ``camera`` into, and the valid-pixel crop.
 
@@ -238,7 +241,8 @@ def undistorted_pinhole(camera: ColmapCamera) -> tuple[np.ndarray, tuple[int, in
     x, y, w, h = (int(v) for v in roi)
     if w <= 0 or h <= 0:
         raise DataParserError(
-            f"undistorting a {camera.model} camera with distortion {camera.distortion.tolist()} leaves no valid pixels: "
+            f"undistorting a {camera.model} camera with distortion {camera.distortion.tolist()} leaves no valid "
+            "pixels: "
             "check the camera parameters"
         )
     new_k = np.asarray(new_k, np.float64).copy()
@@ -288,6 +292,7 @@ def undistorted_paths(
 # ----------------------------------------------------------------------------------------------------------------
 # Shared assembly for COLMAP-based parsers (COLMAP, SPARS3R)
 # ----------------------------------------------------------------------------------------------------------------
+
 
 def check_image_sizes(paths: list[Path], cameras: list[ColmapCamera], camera_names: list[str]) -> None:
     """Each image must have its camera's size; names the first offender."""
@@ -396,7 +401,9 @@ def scale_intrinsics(intrinsics: np.ndarray, sizes: np.ndarray, factor: int) -> 
     sizes = np.asarray(sizes, np.int64)
     new_sizes = sizes // factor
     if (new_sizes < 1).any():
-        raise DataParserError(f"downscale_factor {factor} is too large for the {sizes.min()}-pixel images: use a smaller one")
+        raise DataParserError(
+            f"downscale_factor {factor} is too large for the {sizes.min()}-pixel images: use a smaller one"
+        )
     ratio = new_sizes / sizes
     out = np.asarray(intrinsics, np.float64).copy()
     out[:, 0] *= ratio[:, 0]
@@ -409,6 +416,7 @@ def scale_intrinsics(intrinsics: np.ndarray, sizes: np.ndarray, factor: int) -> 
 # ----------------------------------------------------------------------------------------------------------------
 # The COLMAP dataparser
 # ----------------------------------------------------------------------------------------------------------------
+
 
 @dataclass
 class ColmapDataParserConfig(DataParserConfig):
@@ -427,12 +435,14 @@ class ColmapDataParserConfig(DataParserConfig):
     load_3d_points: bool = True
     """Seed points from points3D."""
 
-    def setup(self) -> "ColmapDataParser":
+    def setup(self) -> ColmapDataParser:
         return ColmapDataParser(self)
 
 
-def split_indices(names: list[str], eval_mode: str, eval_interval: int, train_fraction: float) -> tuple[list[int], list[int]]:
-    """(train, eval) indices into the name-sorted ``names`` (nerfstudio's ``get_train_eval_split_*``)."""
+def split_indices(
+    names: list[str], eval_mode: str, eval_interval: int, train_fraction: float
+) -> tuple[list[int], list[int]]:
+    """(train, eval) indices into ``names`` in the model's order (nerfstudio's ``get_train_eval_split_*``)."""
     n = len(names)
     if eval_mode == "interval":
         if eval_interval < 1:
@@ -472,12 +482,18 @@ class ColmapDataParser(DataParser):
             raise DataParserError(f"COLMAP scene folder {scene} does not exist: check --data")
         images_dir = scene / self.config.images_path
         if not images_dir.is_dir():
-            raise DataParserError(f"image folder {images_dir} does not exist: set images_path to the scene's image folder")
-        model = read_colmap_model(find_model_dir(scene, self.config.colmap_path), load_points=self.config.load_3d_points)
+            raise DataParserError(
+                f"image folder {images_dir} does not exist: set images_path to the scene's image folder"
+            )
+        model = read_colmap_model(
+            find_model_dir(scene, self.config.colmap_path), load_points=self.config.load_3d_points
+        )
         if not model.images:
             raise DataParserError(f"the COLMAP model in {model.path} has no registered images")
         names = [image.name for image in model.images]
-        train, evals = split_indices(names, self.config.eval_mode, self.config.eval_interval, self.config.train_split_fraction)
+        train, evals = split_indices(
+            names, self.config.eval_mode, self.config.eval_interval, self.config.train_split_fraction
+        )
         chosen = train if split == "train" else evals
         return colmap_split_outputs(
             self.config,

@@ -84,6 +84,7 @@ class DemoScene:
 # Textures
 # ----------------------------------------------------------------------------------------------------------------
 
+
 def pink_noise(rng: np.random.Generator, size: int) -> np.ndarray:
     """[size, size] periodic Gaussian noise with a 1/f amplitude spectrum, unit standard deviation."""
     freq = np.fft.fftfreq(size)
@@ -107,7 +108,7 @@ def dead_leaves_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE, num_
     for radius in radii:
         cx, cy = rng.uniform(0, size, size=2)
         colour = palette[rng.integers(len(palette))] * rng.uniform(0.7, 1.15) + rng.normal(0, 0.04, 3)
-        r = int(math.ceil(radius))
+        r = math.ceil(radius)
         ys = np.arange(int(cy) - r, int(cy) + r + 1)
         xs = np.arange(int(cx) - r, int(cx) + r + 1)
         dy, dx = ys[:, None] + 0.5 - cy, xs[None, :] + 0.5 - cx
@@ -146,6 +147,7 @@ def sample_texture(texture: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndar
 # Scene and cameras
 # ----------------------------------------------------------------------------------------------------------------
 
+
 def build_scene(seed: int = 0) -> DemoScene:
     """The demo scene's primitives and textures, deterministic from ``seed``."""
     rng = np.random.default_rng(seed)
@@ -163,11 +165,13 @@ def build_scene(seed: int = 0) -> DemoScene:
     return DemoScene(planes=planes, boxes=boxes, textures=textures, seed=seed)
 
 
-def look_at_c2w(eye: np.ndarray, target: np.ndarray, world_up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
+def look_at_c2w(
+    eye: np.ndarray, target: np.ndarray, world_up: tuple[float, float, float] = (0.0, 0.0, 1.0)
+) -> np.ndarray:
     """[4,4] camera-to-world in OpenCV axes (x right, y down, z forward) looking from ``eye`` at ``target``."""
     forward = target - eye
     forward = forward / np.linalg.norm(forward)
-    right = np.cross(forward, world_up)
+    right = np.cross(forward, np.asarray(world_up, np.float64))
     right = right / np.linalg.norm(right)
     down = np.cross(forward, right)
     c2w = np.eye(4)
@@ -192,6 +196,7 @@ def arc_cameras(num_cameras: int, width: int, height: int) -> tuple[np.ndarray, 
 # Ray casting
 # ----------------------------------------------------------------------------------------------------------------
 
+
 def _rotate(vectors: np.ndarray, rot: np.ndarray) -> np.ndarray:
     """[K,3] vectors times ``rot`` [3,3] (``rot @ v`` each), by broadcasting: tiny BLAS calls are slow on a busy CPU."""
     return vectors[:, 0:1] * rot[:, 0] + vectors[:, 1:2] * rot[:, 1] + vectors[:, 2:3] * rot[:, 2]
@@ -211,8 +216,12 @@ def _intersect(primitive: Plane | Box, origins: np.ndarray, directions: np.ndarr
         t1 = (-primitive.half_size - o_local) / d_local
         t2 = (primitive.half_size - o_local) / d_local
     # 0/0 (a ray inside a slab plane) gives NaN: fmax/fmin ignore it, like an unbounded slab.
-    t_near = np.fmax(np.fmax(np.minimum(t1[:, 0], t2[:, 0]), np.minimum(t1[:, 1], t2[:, 1])), np.minimum(t1[:, 2], t2[:, 2]))
-    t_far = np.fmin(np.fmin(np.maximum(t1[:, 0], t2[:, 0]), np.maximum(t1[:, 1], t2[:, 1])), np.maximum(t1[:, 2], t2[:, 2]))
+    t_near = np.fmax(
+        np.fmax(np.minimum(t1[:, 0], t2[:, 0]), np.minimum(t1[:, 1], t2[:, 1])), np.minimum(t1[:, 2], t2[:, 2])
+    )
+    t_far = np.fmin(
+        np.fmin(np.maximum(t1[:, 0], t2[:, 0]), np.maximum(t1[:, 1], t2[:, 1])), np.maximum(t1[:, 2], t2[:, 2])
+    )
     return np.where((t_far >= t_near) & (t_near > RAY_EPS), t_near, np.inf)
 
 
@@ -282,11 +291,17 @@ def render_view(
 
 
 def sample_seed_points(
-    scene: DemoScene, c2ws: np.ndarray, intrinsics: np.ndarray, width: int, height: int, num_points: int,
-    noise: float, rng: np.random.Generator,
+    scene: DemoScene,
+    c2ws: np.ndarray,
+    intrinsics: np.ndarray,
+    width: int,
+    height: int,
+    num_points: int,
+    noise: float,
+    rng: np.random.Generator,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Surface points seen by random pixels of the given views: (noisy xyz [M,3], rgb uint8 [M,3], clean xyz [M,3])."""
-    per_view = int(math.ceil(num_points / len(c2ws)))
+    per_view = math.ceil(num_points / len(c2ws))
     clean, colours = [], []
     for c2w in c2ws:
         pixels = rng.uniform([0, 0], [width, height], size=(per_view * 2, 2))
@@ -305,6 +320,7 @@ def sample_seed_points(
 # ----------------------------------------------------------------------------------------------------------------
 # Writing the scene (SPARS3R layout, COLMAP text model)
 # ----------------------------------------------------------------------------------------------------------------
+
 
 def rotation_to_quaternion(rot: np.ndarray) -> np.ndarray:
     """[3,3] rotation -> (w, x, y, z), w >= 0 (Shepperd's method, numerically stable for every angle)."""
@@ -328,8 +344,14 @@ def rotation_to_quaternion(rot: np.ndarray) -> np.ndarray:
 
 
 def write_colmap_text_model(
-    folder: Path, width: int, height: int, intrinsics: np.ndarray, names: list[str], c2ws: np.ndarray,
-    points_xyz: np.ndarray, points_rgb: np.ndarray,
+    folder: Path,
+    width: int,
+    height: int,
+    intrinsics: np.ndarray,
+    names: list[str],
+    c2ws: np.ndarray,
+    points_xyz: np.ndarray,
+    points_rgb: np.ndarray,
 ) -> None:
     """A one-camera PINHOLE COLMAP text model (no 2D observations) for the given OpenCV camera-to-worlds."""
     folder.mkdir(parents=True, exist_ok=True)
@@ -341,7 +363,9 @@ def write_colmap_text_model(
         rot_cw = c2w[:3, :3].T
         t_cw = -rot_cw @ c2w[:3, 3]
         q = rotation_to_quaternion(rot_cw)
-        lines.append(" ".join([str(image_id), *(repr(float(v)) for v in q), *(repr(float(v)) for v in t_cw), "1", name]))
+        lines.append(
+            " ".join([str(image_id), *(repr(float(v)) for v in q), *(repr(float(v)) for v in t_cw), "1", name])
+        )
         lines.append("")
     (folder / "images.txt").write_text("\n".join(lines) + "\n")
     point_lines = ["# POINT3D_ID X Y Z R G B ERROR (no tracks: the points are sampled, not triangulated)"]

@@ -58,7 +58,8 @@ def to_uint8(image: np.ndarray, path: str | Path = "<array>") -> np.ndarray:
         bad = ~np.isfinite(image)
         if bad.any():
             raise DataParserError(
-                f"image {path} has {int(bad.sum())} NaN/inf values: fix or re-export the file (expected values in [0,1])"
+                f"image {path} has {int(bad.sum())} NaN/inf values: fix or re-export the file "
+                "(expected values in [0,1])"
             )
         return np.round(np.clip(image, 0.0, 1.0) * 255.0).astype(np.uint8)
     raise DataParserError(f"image {path} has unsupported pixel type {image.dtype}: expected 8/16-bit or float")
@@ -74,7 +75,7 @@ def image_size(path: str | Path) -> tuple[int, int]:
 
         with Image.open(path) as handle:
             return int(handle.size[0]), int(handle.size[1])
-    except Exception:  # PIL cannot parse every format OpenCV reads (e.g. EXR): fall back to a full decode
+    except (OSError, ValueError):  # PIL cannot parse every format OpenCV reads (e.g. EXR): decode fully
         image = read_image(path)
         return int(image.shape[1]), int(image.shape[0])
 

@@ -2,7 +2,7 @@
 
 Layout: ``<scene>/transforms.json`` (or ``--data path/to/file.json``), image paths in it relative to its folder::
 
-    {"camera_model": "OPENCV", "fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "p1", "p2",  (global or per frame)
+    {"camera_model": "OPENCV", "fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "p1", "p2",  (global/per frame)
      "frames": [{"file_path": "images/0001.png", "transform_matrix": 4x4 camera-to-world, OpenGL axes, ...}],
      "train_filenames": [...], "val_filenames": [...], "test_filenames": [...],   (optional, explicit splits)
      "ply_file_path": "sparse_pc.ply",                                            (optional seed points)
@@ -56,7 +56,7 @@ class TransformsDataParserConfig(DataParserConfig):
     load_3d_points: bool = True
     """Seed points from ``ply_file_path`` when the file names one."""
 
-    def setup(self) -> "TransformsDataParser":
+    def setup(self) -> TransformsDataParser:
         return TransformsDataParser(self)
 
 
@@ -145,7 +145,9 @@ class TransformsDataParser(DataParser):
                 raise DataParserError(f"{json_path}: every frame needs 'file_path' and 'transform_matrix'")
             path = base / frame["file_path"]
             if not path.is_file() and path.suffix == "":  # instant-ngp's Blender exports omit the extension
-                path = next((path.with_suffix(s) for s in (".png", ".jpg", ".jpeg") if path.with_suffix(s).is_file()), path)
+                path = next(
+                    (path.with_suffix(s) for s in (".png", ".jpg", ".jpeg") if path.with_suffix(s).is_file()), path
+                )
             (frames if path.is_file() else missing).append((path, frame))
         if missing:
             warnings.warn(
@@ -161,7 +163,9 @@ class TransformsDataParser(DataParser):
             raise DataParserError(f"{json_path}: transform_matrix must be 4x4 (or 3x4), got {c2w_gl.shape[1:]}")
         bad = [str(frames[i][1]["file_path"]) for i in range(len(frames)) if not np.isfinite(c2w_gl[i]).all()]
         if bad:
-            raise DataParserError(f"{json_path}: transform_matrix of {', '.join(bad)} contains NaN/inf: fix those frames")
+            raise DataParserError(
+                f"{json_path}: transform_matrix of {', '.join(bad)} contains NaN/inf: fix those frames"
+            )
         c2w_cv = opencv_to_opengl(c2w_gl)
 
         split_lists = {s: meta.get(f"{s}_filenames") for s in ("train", "val", "test")}
@@ -198,7 +202,10 @@ class TransformsDataParser(DataParser):
             raise DataParserError(f"split '{split}' of {json_path} is empty: check its split lists / eval_mode")
 
         normalization = normalize_poses(
-            c2w_cv[normalize_idx], self.config.orientation_method, self.config.center_method, self.config.auto_scale_poses
+            c2w_cv[normalize_idx],
+            self.config.orientation_method,
+            self.config.center_method,
+            self.config.auto_scale_poses,
         )
         c2w_all = normalization.apply_to_c2w(c2w_cv)
         cameras = [frame_camera(frames[i][1], meta, json_path) for i in chosen]
