@@ -202,6 +202,11 @@ def _rotate(vectors: np.ndarray, rot: np.ndarray) -> np.ndarray:
     return vectors[:, 0:1] * rot[:, 0] + vectors[:, 1:2] * rot[:, 1] + vectors[:, 2:3] * rot[:, 2]
 
 
+def _rows(origins: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """Origins of the selected rays: a shared [1,3] origin broadcasts, per-ray [K,3] origins are indexed."""
+    return origins if len(origins) == 1 else origins[index]
+
+
 def _intersect(primitive: Plane | Box, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
     """Ray parameter of the first hit in front of the origin, [K] (inf where missed)."""
     if isinstance(primitive, Plane):
@@ -243,7 +248,7 @@ def _surface(primitive: Plane | Box, points: np.ndarray) -> tuple[np.ndarray, np
 
 
 def cast_rays(scene: DemoScene, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Nearest hit of rays [K,3]: (t [K] (inf = sky), rgb [K,3] shaded colour in [0,1])."""
+    """Nearest hit of rays (origins [K,3] or a shared [1,3], directions [K,3]): (t [K] (inf = sky), rgb [K,3])."""
     primitives: list[Plane | Box] = [*scene.planes, *scene.boxes]
     ts = np.stack([_intersect(p, origins, directions) for p in primitives])
     winner = np.argmin(ts, axis=0)
@@ -253,7 +258,7 @@ def cast_rays(scene: DemoScene, origins: np.ndarray, directions: np.ndarray) -> 
         idx = np.nonzero((winner == index) & np.isfinite(best_t))[0]
         if len(idx) == 0:
             continue
-        points = origins[idx] + best_t[idx, None] * directions[idx]
+        points = _rows(origins, idx) + best_t[idx, None] * directions[idx]
         u, v, normal = _surface(primitive, points)
         colour = sample_texture(scene.textures[primitive.texture], u, v)
         shade = 0.55 + 0.45 * np.clip(normal @ LIGHT_DIRECTION, 0.0, 1.0)
@@ -262,12 +267,15 @@ def cast_rays(scene: DemoScene, origins: np.ndarray, directions: np.ndarray) -> 
 
 
 def camera_rays(c2w: np.ndarray, intrinsics: np.ndarray, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World rays through pixel coordinates [K,2] (pixel centres at +0.5): (origins [K,3], unit directions [K,3])."""
+    """World rays through pixel coordinates [K,2] (pixel centres at +0.5): (origin [1,3], unit directions [K,3]).
+
+    The origin is shared (a pinhole), kept as one row so that per-ray work on it is done once.
+    """
     fx, fy, cx, cy = intrinsics
     d_cam = np.stack([(pixels[:, 0] - cx) / fx, (pixels[:, 1] - cy) / fy, np.ones(len(pixels))], axis=1)
     d_world = _rotate(d_cam, c2w[:3, :3])
     d_world /= np.sqrt((d_world**2).sum(axis=1, keepdims=True))
-    return np.broadcast_to(c2w[:3, 3], d_world.shape), d_world
+    return c2w[None, :3, 3].copy(), d_world
 
 
 def render_view(
@@ -308,7 +316,7 @@ def sample_seed_points(
         origins, dirs = camera_rays(c2w, intrinsics, pixels)
         t, rgb = cast_rays(scene, origins, dirs)
         hit = np.isfinite(t)
-        points = origins[hit] + t[hit, None] * dirs[hit]
+        points = _rows(origins, hit) + t[hit, None] * dirs[hit]
         clean.append(points[:per_view])
         colours.append(rgb[hit][:per_view])
     clean_xyz = np.concatenate(clean)[:num_points]
