@@ -202,3 +202,22 @@ def test_fountain_normalization_matches_nerfstudio_reference(fountain_p11):
     assert torch.allclose(c2w_gl[:, :3, :4], ref_c2w_gl[:, :3, :4], atol=1e-5)
     assert torch.allclose(outputs.dataparser_transform, ref_transform, atol=1e-5)
     assert outputs.dataparser_scale == pytest.approx(ref_scale, rel=1e-6)
+
+
+def test_colmap_masks_path(fountain_p11, tmp_path):
+    scene = scene_variant(fountain_p11, tmp_path / "scene", with_lists=False)
+    (scene / "masks").mkdir()
+    expected = {}
+    for i, name in enumerate(FOUNTAIN_NAMES):
+        mask = np.zeros((512, 768), np.uint8)
+        mask[:, : 60 * (i + 1)] = 255
+        cv2.imwrite(str(scene / "masks" / name.replace(".jpg", ".png")), mask)
+        expected[name] = mask > 127
+    outputs = ColmapDataParserConfig(data=scene, masks_path="masks").setup().get_dataparser_outputs("test")
+    dataset = ImageDataset(outputs)
+    assert names(outputs) == ["0000.jpg", "0008.jpg"]
+    for i, name in enumerate(names(outputs)):
+        assert np.array_equal(dataset.mask(i)[..., 0].numpy(), expected[name])
+    (scene / "masks" / "0008.png").unlink()
+    with pytest.raises(DataParserError, match="mask file.* missing: .*0008.png"):
+        ColmapDataParserConfig(data=scene, masks_path="masks").setup().get_dataparser_outputs("test")

@@ -3,6 +3,7 @@ nerfstudio's normalization and the dataparser_transforms.json file."""
 
 import json
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -236,3 +237,37 @@ def test_single_camera_normalizes_without_dividing_by_zero():
     assert normalization.scale == 1.0  # zero extent: unit scale, never inf/NaN
     assert np.allclose(normalization.apply_to_c2w(c2w[None])[0, :3, 3], 0.0)
     assert np.isfinite(normalization.transform).all()
+
+
+def test_masks_follow_their_images_through_downscaling(castle_p30, tmp_path):
+    import cv2
+
+    from kc_splatfacto.data.dataset import ImageDataset
+
+    train, test = castle_outputs(castle_p30)
+    scene = write_transforms(tmp_path / "ns", [train])
+    meta = json.loads((scene / "transforms.json").read_text())
+    rng = np.random.default_rng(7)
+    masks = {}
+    for frame in meta["frames"][:12]:
+        mask = np.zeros((512, 768), np.uint8)
+        x, y = rng.integers(0, 600), rng.integers(0, 400)
+        mask[y : y + 100, x : x + 150] = 255
+        name = f"masks/{Path(frame['file_path']).stem}.png"
+        (scene / "masks").mkdir(exist_ok=True)
+        cv2.imwrite(str(scene / name), mask)
+        frame["mask_path"] = name
+        masks[Path(frame["file_path"]).name] = mask
+    (scene / "transforms.json").write_text(json.dumps(meta))
+    config = TransformsDataParserConfig(data=scene, eval_mode="all", downscale_factor=2, cache_dir=tmp_path / "cache")
+    outputs = config.setup().get_dataparser_outputs("train")
+    dataset = ImageDataset(outputs)
+    for i in (0, 5):
+        expected = cv2.resize(masks[outputs.image_filenames[i].name], (384, 256), interpolation=cv2.INTER_AREA) > 127
+        got = dataset.mask(i)
+        assert got.shape == (256, 384, 1) and got.dtype == torch.bool
+        assert np.array_equal(got[..., 0].numpy(), expected)
+    del meta["frames"][3]["mask_path"]
+    (scene / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(DataParserError, match="some frames .* have a mask_path and others do not"):
+        config.setup().get_dataparser_outputs("train")

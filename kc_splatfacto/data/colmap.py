@@ -379,6 +379,12 @@ def colmap_split_outputs(
     cameras = [model.cameras[cid] for cid in camera_ids]
     paths = [images_dir / name for name in split_names]
     check_image_sizes(paths, cameras, [f"COLMAP camera {cid}" for cid in camera_ids])
+    mask_paths = None
+    masks_path = getattr(config, "masks_path", None)
+    if masks_path is not None:
+        masks_dir = Path(config.data) / masks_path
+        mask_paths = [masks_dir / Path(name).with_suffix(".png") for name in split_names]
+        mask_paths = prepare_masks(config, mask_paths, cameras, [masks_dir] * len(paths), metadata)
     paths, intrinsics, sizes = pinhole_images(config, paths, cameras, [images_dir] * len(paths), metadata)
 
     outputs = DataparserOutputs(
@@ -388,12 +394,32 @@ def colmap_split_outputs(
         scene_scale=scene_scale_of(c2w_normalized_all),
         dataparser_transform=torch.from_numpy(normalization.transform.astype(np.float32)),
         dataparser_scale=float(normalization.scale),
+        mask_filenames=mask_paths,
         metadata={"normalization": normalization, "image_names": list(split_names), **metadata},
     )
     if load_points and len(model.points_xyz) > 0:
         outputs.points3d_xyz = torch.from_numpy(normalization.apply_to_points(model.points_xyz).astype(np.float32))
         outputs.points3d_rgb = torch.from_numpy(model.points_rgb.copy())
     return outputs
+
+
+def prepare_masks(
+    config: DataParserConfig,
+    mask_paths: list[Path],
+    cameras: list[ColmapCamera],
+    masks_dirs: list[Path],
+    metadata: dict,
+) -> list[Path]:
+    """Mask files (white = use the pixel) checked, then undistorted and downscaled exactly like their images."""
+    missing = [str(p) for p in mask_paths if not p.is_file()]
+    if missing:
+        raise DataParserError(
+            f"{len(missing)} mask file(s) are missing: {', '.join(missing[:5])}{' ...' if len(missing) > 5 else ''} "
+            "(masks are <masks_path>/<image name>.png; add them or unset masks_path / mask_path)"
+        )
+    check_image_sizes(mask_paths, cameras, ["camera"] * len(mask_paths))
+    paths, _, _ = pinhole_images(config, mask_paths, cameras, masks_dirs, {})
+    return paths
 
 
 def scale_intrinsics(intrinsics: np.ndarray, sizes: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray]:
@@ -434,6 +460,8 @@ class ColmapDataParserConfig(DataParserConfig):
     """Fraction of images for training (eval_mode "fraction")."""
     load_3d_points: bool = True
     """Seed points from points3D."""
+    masks_path: Path | None = None
+    """Optional mask folder relative to ``data``: ``<masks_path>/<image name>.png``, white = use the pixel."""
 
     def setup(self) -> ColmapDataParser:
         return ColmapDataParser(self)

@@ -486,6 +486,7 @@ class DemoDataParserConfig(Spars3rDataParserConfig):
             images_path=self.images_path,
             colmap_path=self.colmap_path,
             load_3d_points=self.load_3d_points,
+            masks_path=self.masks_path,
         )
         return Spars3rDataParser(parser_config)
 

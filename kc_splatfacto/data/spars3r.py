@@ -38,6 +38,8 @@ class Spars3rDataParserConfig(DataParserConfig):
     """Model folder relative to ``data``; None tries sparse/0, then a single sparse_*/0."""
     load_3d_points: bool = True
     """Seed points from points3D."""
+    masks_path: Path | None = None
+    """Optional mask folder relative to ``data``: ``<masks_path>/<image name>.png``, white = use the pixel."""
 
     def setup(self) -> Spars3rDataParser:
         return Spars3rDataParser(self)

@@ -3,7 +3,8 @@
 Layout: ``<scene>/transforms.json`` (or ``--data path/to/file.json``), image paths in it relative to its folder::
 
     {"camera_model": "OPENCV", "fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "p1", "p2",  (global/per frame)
-     "frames": [{"file_path": "images/0001.png", "transform_matrix": 4x4 camera-to-world, OpenGL axes, ...}],
+     "frames": [{"file_path": "images/0001.png", "transform_matrix": 4x4 camera-to-world, OpenGL axes,
+                 "mask_path": "masks/0001.png" (optional, white = use the pixel)}],
      "train_filenames": [...], "val_filenames": [...], "test_filenames": [...],   (optional, explicit splits)
      "ply_file_path": "sparse_pc.ply",                                            (optional seed points)
      "applied_transform": 3x4, "aabb_scale": ...}                                 (aabb_scale is ignored)
@@ -37,7 +38,7 @@ from kc_splatfacto.data.base import (
     opencv_to_opengl,
     scene_scale_of,
 )
-from kc_splatfacto.data.colmap import ColmapCamera, check_image_sizes, pinhole_images, split_indices
+from kc_splatfacto.data.colmap import ColmapCamera, check_image_sizes, pinhole_images, prepare_masks, split_indices
 from kc_splatfacto.data.outputs import DataparserOutputs
 
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
@@ -212,6 +213,16 @@ class TransformsDataParser(DataParser):
         split_paths = [paths[i] for i in chosen]
         check_image_sizes(split_paths, cameras, [f"camera in {json_path.name}"] * len(chosen))
         metadata: dict = {"format": "nerfstudio-data", "skipped_frames": [str(f["file_path"]) for _, f in missing]}
+        with_masks = ["mask_path" in frames[i][1] for i in chosen]
+        mask_paths = None
+        if any(with_masks):
+            if not all(with_masks):
+                raise DataParserError(
+                    f"{json_path}: some frames of split '{split}' have a mask_path and others do not: give every "
+                    "frame a mask or none"
+                )
+            mask_paths = [base / frames[i][1]["mask_path"] for i in chosen]
+            mask_paths = prepare_masks(self.config, mask_paths, cameras, [p.parent for p in mask_paths], metadata)
         split_paths, intrinsics, sizes = pinhole_images(
             self.config, split_paths, cameras, [p.parent for p in split_paths], metadata
         )
@@ -223,6 +234,7 @@ class TransformsDataParser(DataParser):
             transform = transform @ applied4
         outputs = DataparserOutputs(
             image_filenames=split_paths,
+            mask_filenames=mask_paths,
             cameras=make_cameras(c2w_all[chosen], intrinsics, sizes[:, 0], sizes[:, 1]),
             split=split,
             scene_scale=scene_scale_of(c2w_all[normalize_idx]),
