@@ -244,7 +244,7 @@ def test_masks_follow_their_images_through_downscaling(castle_p30, tmp_path):
 
     from kc_splatfacto.data.dataset import ImageDataset
 
-    train, test = castle_outputs(castle_p30)
+    train, _ = castle_outputs(castle_p30)
     scene = write_transforms(tmp_path / "ns", [train])
     meta = json.loads((scene / "transforms.json").read_text())
     rng = np.random.default_rng(7)
