@@ -271,3 +271,31 @@ def test_masks_follow_their_images_through_downscaling(castle_p30, tmp_path):
     (scene / "transforms.json").write_text(json.dumps(meta))
     with pytest.raises(DataParserError, match="some frames .* have a mask_path and others do not"):
         config.setup().get_dataparser_outputs("train")
+
+
+def test_blender_style_camera_angle_x_with_rgba_images(tmp_path):
+    """NeRF-synthetic layout: camera_angle_x only, extension-less paths, RGBA PNGs composited on the background."""
+    import cv2
+
+    from kc_splatfacto.data.dataset import ImageDataset
+
+    (tmp_path / "train").mkdir()
+    frames = []
+    for i in range(3):
+        rgba = np.zeros((30, 40, 4), np.uint8)
+        rgba[10:20, 10:30] = (255, 0, 0, 255)  # opaque blue square in BGRA
+        cv2.imwrite(str(tmp_path / "train" / f"r_{i}.png"), rgba)
+        c2w = np.eye(4)
+        c2w[:3, 3] = [i, 0.0, 4.0]
+        frames.append({"file_path": f"./train/r_{i}", "transform_matrix": c2w.tolist()})
+    angle = 0.6911112070083618
+    (tmp_path / "transforms.json").write_text(json.dumps({"camera_angle_x": angle, "frames": frames}))
+    outputs = TransformsDataParserConfig(data=tmp_path, eval_mode="all").setup().get_dataparser_outputs("train")
+    focal = 20.0 / np.tan(angle / 2)
+    expected_k = torch.tensor([[focal, 0, 20.0], [0, focal, 15.0], [0, 0, 1]], dtype=torch.float32)
+    assert torch.allclose(outputs.cameras.Ks[0], expected_k)
+    assert int(outputs.cameras.widths[0]) == 40 and int(outputs.cameras.heights[0]) == 30
+    dataset = ImageDataset(outputs, background=(1.0, 1.0, 1.0), alpha_as_mask=True)
+    image = dataset.image_uint8(1)
+    assert image[0, 0].tolist() == [255, 255, 255] and image[15, 20].tolist() == [0, 0, 255]
+    assert int(dataset.mask(1).sum()) == 200

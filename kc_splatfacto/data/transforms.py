@@ -9,7 +9,9 @@ Layout: ``<scene>/transforms.json`` (or ``--data path/to/file.json``), image pat
      "ply_file_path": "sparse_pc.ply",                                            (optional seed points)
      "applied_transform": 3x4, "aabb_scale": ...}                                 (aabb_scale is ignored)
 
-Frames are sorted by file name (nerfstudio). Frames whose image file is missing are listed by name in one warning
+Blender-style files with only ``camera_angle_x`` (NeRF synthetic) work too: the focal length
+comes from it and the image width, the principal point is the image centre, and extension-less ``file_path``s are
+resolved to .png/.jpg. Frames are sorted by file name (nerfstudio). Frames whose image file is missing are listed by name in one warning
 and skipped. Without split lists the split follows ``eval_mode`` like the COLMAP parser; "val" falls back to the test
 list and "test" to the val list when only one is given. Distorted cameras (k1..p2) are undistorted with OpenCV and
 cached; ``camera_model`` other than OPENCV/PINHOLE/SIMPLE_PINHOLE (e.g. fisheye) is an error.
@@ -22,6 +24,7 @@ then maps the original capture's world (e.g. the COLMAP model ns-process-data co
 from __future__ import annotations
 
 import json
+import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,6 +42,7 @@ from kc_splatfacto.data.base import (
     scene_scale_of,
 )
 from kc_splatfacto.data.colmap import ColmapCamera, check_image_sizes, pinhole_images, prepare_masks, split_indices
+from kc_splatfacto.data.images import image_size
 from kc_splatfacto.data.outputs import DataparserOutputs
 
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
@@ -87,8 +91,26 @@ def _frame_value(frame: dict, meta: dict, key: str, json_path: Path, default=Non
     )
 
 
-def frame_camera(frame: dict, meta: dict, json_path: Path) -> ColmapCamera:
-    """The frame's camera (global values overridden per frame) as pinhole + OpenCV distortion."""
+def frame_camera(frame: dict, meta: dict, json_path: Path, image_path: Path | None = None) -> ColmapCamera:
+    """The frame's camera (global values overridden per frame) as pinhole + OpenCV distortion.
+
+    Blender-style files (NeRF synthetic) give only ``camera_angle_x``: then ``w``/``h`` come from the image header,
+    ``fl_x = fl_y = w / (2 tan(camera_angle_x / 2))`` and the principal point is the image centre.
+    """
+    has_focal = any(key in frame or key in meta for key in ("fl_x", "fl_y"))
+    if not has_focal and "camera_angle_x" in meta:
+        frame = dict(frame)
+        if "w" not in frame and "w" not in meta or "h" not in frame and "h" not in meta:
+            frame["w"], frame["h"] = image_size(image_path) if image_path is not None else (None, None)
+        width, height = (
+            float(_frame_value(frame, meta, "w", json_path)),
+            float(_frame_value(frame, meta, "h", json_path)),
+        )
+        focal = 0.5 * width / math.tan(0.5 * float(meta["camera_angle_x"]))
+        frame.setdefault("fl_x", focal)
+        frame.setdefault("fl_y", focal)
+        frame.setdefault("cx", _frame_value(frame, meta, "cx", json_path, width / 2.0))
+        frame.setdefault("cy", _frame_value(frame, meta, "cy", json_path, height / 2.0))
     values = {key: _frame_value(frame, meta, key, json_path) for key in INTRINSIC_KEYS}
     distortion = np.array([float(_frame_value(frame, meta, key, json_path, 0.0)) for key in DISTORTION_KEYS])
     camera = ColmapCamera(
@@ -209,7 +231,7 @@ class TransformsDataParser(DataParser):
             self.config.auto_scale_poses,
         )
         c2w_all = normalization.apply_to_c2w(c2w_cv)
-        cameras = [frame_camera(frames[i][1], meta, json_path) for i in chosen]
+        cameras = [frame_camera(frames[i][1], meta, json_path, paths[i]) for i in chosen]
         split_paths = [paths[i] for i in chosen]
         check_image_sizes(split_paths, cameras, [f"camera in {json_path.name}"] * len(chosen))
         metadata: dict = {"format": "nerfstudio-data", "skipped_frames": [str(f["file_path"]) for _, f in missing]}
