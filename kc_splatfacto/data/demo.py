@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kc_splatfacto.data.base import DataParserError, default_cache_dir
+from kc_splatfacto.data.base import CACHE_ENV, DataParserError, default_cache_dir
 from kc_splatfacto.data.images import write_image_atomic
 from kc_splatfacto.data.spars3r import Spars3rDataParser, Spars3rDataParserConfig
 
@@ -439,8 +439,13 @@ def ensure_demo_scene(spec: DemoSceneSpec, cache_dir: Path | None = None) -> Pat
     final = root / spec.key()
     if (final / "demo.json").is_file():
         return final
-    root.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=root, prefix=f".{spec.key()}."))
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(dir=root, prefix=f".{spec.key()}."))
+    except OSError as exc:
+        raise DataParserError(
+            f"cannot write the demo scene into {root} ({exc.strerror}): set {CACHE_ENV} to a writable folder"
+        ) from exc
     try:
         generate_demo_scene(spec, tmp / "scene")
         try:
