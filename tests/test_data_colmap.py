@@ -134,6 +134,19 @@ def test_camera_models_and_undistortion(fountain_p11, tmp_path, model, params, d
     mtime = outputs.image_filenames[2].stat().st_mtime_ns
     config.setup().get_dataparser_outputs("test")
     assert outputs.image_filenames[2].stat().st_mtime_ns == mtime
+    if model == "OPENCV":  # undistort then downscale: INTER_AREA of the undistorted image, intrinsics scaled
+        config.downscale_factor, config.eval_mode = 2, "interval"
+        small = config.setup().get_dataparser_outputs("test")  # 0000.jpg and 0008.jpg
+        assert names(small) == ["0000.png", "0008.png"]  # undistorted copies are PNG
+        big_index = [p.stem for p in outputs.image_filenames].index("0008")
+        full = ImageDataset(outputs).image_uint8(big_index).numpy()
+        w2, h2 = full.shape[1] // 2, full.shape[0] // 2
+        assert (int(small.cameras.widths[1]), int(small.cameras.heights[1])) == (w2, h2)
+        expected = cv2.resize(full, (w2, h2), interpolation=cv2.INTER_AREA)
+        assert np.array_equal(ImageDataset(small).image_uint8(1).numpy(), expected)
+        k_full = outputs.cameras.Ks[big_index].double()
+        ratio = torch.tensor([w2 / full.shape[1], h2 / full.shape[0], 1.0], dtype=torch.float64)
+        assert torch.allclose(small.cameras.Ks[1].double(), k_full * ratio[:, None], atol=1e-4)
 
 
 def test_unsupported_camera_model_is_named(fountain_p11, tmp_path):
