@@ -234,3 +234,16 @@ def test_colmap_masks_path(fountain_p11, tmp_path):
     (scene / "masks" / "0008.png").unlink()
     with pytest.raises(DataParserError, match="mask file.* missing: .*0008.png"):
         ColmapDataParserConfig(data=scene, masks_path="masks").setup().get_dataparser_outputs("test")
+
+
+def test_downscale_into_a_writable_scene_folder_split_by_split(fountain_p11, tmp_path):
+    """Each split writes only its own images into <scene>/images_2; the next split adds its own."""
+    scene = scene_variant(fountain_p11, tmp_path / "scene", with_lists=False)
+    config = ColmapDataParserConfig(data=scene, downscale_factor=2)
+    test = config.setup().get_dataparser_outputs("test")
+    assert [p.parent for p in test.image_filenames] == [scene / "images_2"] * 2
+    assert sorted(p.name for p in (scene / "images_2").iterdir()) == ["0000.jpg", "0008.jpg"]
+    train = config.setup().get_dataparser_outputs("train")
+    assert len(list((scene / "images_2").iterdir())) == 11
+    assert all(p.parent == scene / "images_2" for p in train.image_filenames)
+    assert read_image(train.image_filenames[0]).shape == (256, 384, 3)

@@ -145,25 +145,25 @@ def downscaled_paths(
 ) -> list[Path]:
     """Paths of ``image_paths`` downscaled ``factor`` times (``cv2.INTER_AREA``), creating missing ones.
 
-    Copies live in ``<images_dir name>_<factor>/`` (nerfstudio's layout) under :func:`derived_root`, keep the
-    relative path and the file name, and are reused when present. An existing ``images_N`` shipped next to the
-    images in the scene folder is used as is.
+    Copies live in ``<images_dir name>_<factor>/`` (nerfstudio's layout) and keep the relative path and file name.
+    A copy already next to the images (shipped with the scene, or written there by an earlier run) is used as is;
+    a missing one is written under :func:`derived_root`.
     """
     if factor == 1:
         return list(image_paths)
     import cv2
 
-    shipped = images_dir.parent / f"{images_dir.name}_{factor}"
-    root = shipped if shipped.is_dir() else derived_root(images_dir, cache_dir) / f"{images_dir.name}_{factor}"
+    folder = f"{images_dir.name}_{factor}"
+    beside = images_dir.parent / folder
+    derived = derived_root(images_dir, cache_dir) / folder
     out = []
     for path in image_paths:
-        target = root / Path(path).relative_to(images_dir)
+        relative = Path(path).relative_to(images_dir)
+        if cache_dir is None and (beside / relative).is_file():
+            out.append(beside / relative)
+            continue
+        target = derived / relative
         if not target.exists():
-            if shipped.is_dir():
-                raise DataParserError(
-                    f"{target} is missing from the scene's downscaled folder {shipped}: add it or delete {shipped} "
-                    "to have it regenerated"
-                )
             image = read_image(path)
             new_w, new_h = resized_size(image.shape[1], image.shape[0], factor)
             write_image_atomic(target, cv2.resize(image, (new_w, new_h), interpolation=cv2.INTER_AREA))
