@@ -4,14 +4,16 @@ Notation: c^j_o is the detail subband of level j (1 = finest) and orientation o 
 detail subbands in the order (level 1: H, V, D), (level 2: H, V, D), ...; every statistic is per image and channel.
 
 - wavelet_l1      = sum_j w_j sum_o mean|c^j_o(pred) - c^j_o(gt)|,  w_j = 2^j ("paper"), 2^(J-j+1) ("fine"), 1 ("uniform")
-- band_kurtosis   k_b = m4_b / (m2_b + eps)^2 - 3, m_k the central moments of subband b (scipy's biased Fisher kurtosis)
+- band_kurtosis   k_b = m4_b / (m2_b + eps s^2)^2 - 3, m_k the central moments of subband b (scipy's biased Fisher
+                  kurtosis), s^2 the image's mean coefficient power (detached), eps = 1e-12
 - kurtosis_spread = max_b k_b - min_b k_b
 - kc_loss         = |spread(pred) - spread(gt)| + sum_b |k_b(pred) - k_b(gt)|        (unsupervised: spread(pred))
 - covariance      Sigma^j = Z Z^T / (P - 1), Z the centred, flattened [3, P] stack of (H, V, D) of level j
-                  (correlation option: Sigma_uv / sqrt((Sigma_uu + eps)(Sigma_vv + eps)))
+                  (correlation option: Sigma_uv / sqrt((Sigma_uu + eps s^2)(Sigma_vv + eps s^2)))
 - L_cov           = sum_j ||Sigma^j - diag(Sigma^j)||_F^2
 - cbc_loss        = |L_cov(pred) - L_cov(gt)|                                         (unsupervised: L_cov(pred))
-The kc and cbc terms are averaged over images and channels. `docs/losses.md` explains the choices (weighting, eps).
+The kc and cbc terms are averaged over images and channels. An image too small for any level has no detail band:
+every term is then 0 (still attached to pred's graph, with a zero gradient). `docs/losses.md` explains the choices (weighting, eps).
 
 The ground truth never needs gradients: `prepare_target(gt)` computes its coefficients and statistics once, detached,
 as a `WaveletTarget` that every loss here accepts in place of the gt image, so a trainer can cache it per image.
@@ -27,16 +29,18 @@ from torch import Tensor, nn
 from kc_splatfacto.losses.wavelets import MODES, WaveletCoeffs, dwt2
 
 WEIGHTINGS = ("paper", "fine", "uniform")
-# eps on a band's variance, relative to the image's mean power (mean square over all its wavelet coefficients, which
-# by Parseval is ~ the mean square pixel). 1e-12 in variance = a standard deviation of 1e-6 of the signal's RMS: ~10x
-# above float32 rounding noise of the transform and ~4000x below an 8-bit quantization step, so every real band is
-# untouched (a sigma-3 blurred photo's finest diagonal band, std 2e-5 RMS, keeps its kurtosis to 1%), while a
-# constant or rounding-noise band (variance ~0) gets kurtosis -3 with a bounded gradient instead of 0/0. Being
-# relative, it keeps every statistic exactly scale-invariant (intensities x1e4 or x1e-6 give the same kurtosis).
-# docs/losses.md has the measured sweep.
+# Every statistic is computed on the bands divided by the image's RMS coefficient magnitude s (detached; by Parseval
+# ~ the RMS pixel): kurtosis and correlation do not depend on scale, and covariance is s^2 cov(c / s) exactly, so
+# nothing changes mathematically, but every intermediate is O(1) whatever the intensity scale (x1e4, x1e-6), and the
+# backward of rsqrt(m2 + eps) stays far from float32 overflow even for an all-black image.
+# eps on a normalized band's variance: 1e-12 = a standard deviation of 1e-6 of the image's RMS, ~10x above float32
+# rounding noise of the transform and ~4000x below an 8-bit quantization step. Every real band is untouched (a
+# sigma-3 blurred photo's finest diagonal band, std 2e-5 RMS, keeps its kurtosis to 1%), while a constant or
+# rounding-noise band (variance ~0) gets kurtosis -3 with a bounded gradient instead of 0/0. docs/losses.md has the
+# measured sweep.
 VARIANCE_REL_EPS = 1e-12
-# Absolute floor for an all-zero image (mean power 0), far above float32's smallest normal (~1e-38) when squared.
-VARIANCE_ABS_EPS = 1e-30
+# Floor of the image power s^2, only active for an all-zero image (then every band is 0 and s only has to be > 0).
+POWER_FLOOR = 1e-30
 
 
 def _check_finite(x: Tensor, name: str) -> None:
@@ -68,35 +72,37 @@ def level_weights(levels: int, weighting: str = "paper") -> list[float]:
 # --------------------------------------------------------------------------------------------------- statistics
 
 
-def _variance_eps(coeffs: WaveletCoeffs) -> Tensor:
-    """[B, C, 1] eps on a band's variance: VARIANCE_REL_EPS times the image's mean coefficient power (detached)."""
+def _image_power(coeffs: WaveletCoeffs) -> Tensor:
+    """[B, C, 1] mean square over all the image's coefficients (approx and details), detached, floored."""
     with torch.no_grad():
         total = coeffs.approx.square().sum(dim=(-2, -1))
         count = coeffs.approx.shape[-2] * coeffs.approx.shape[-1]
         for band in coeffs.details:
             total = total + band.square().sum(dim=(-4, -2, -1))
             count += band.shape[-3] * band.shape[-2] * band.shape[-1]
-        return (VARIANCE_REL_EPS * total / count + VARIANCE_ABS_EPS).unsqueeze(-1)
+        return (total / count).clamp_min(POWER_FLOOR).unsqueeze(-1)
 
 
-def _centred_levels(coeffs: WaveletCoeffs) -> list[Tensor]:
-    """Per level, the centred flattened subbands [B, C, 3, P_j]."""
+def _normalized_levels(coeffs: WaveletCoeffs) -> tuple[list[Tensor], Tensor]:
+    """Per level, the centred flattened subbands divided by the image's RMS, [B, C, 3, P_j]; and the power [B, C, 1]."""
+    power = _image_power(coeffs)
+    inv_rms = torch.rsqrt(power).unsqueeze(-1)  # [B, C, 1, 1]
     centred = []
     for band in coeffs.details:
         flat = band.flatten(-2)
-        centred.append(flat - flat.mean(dim=-1, keepdim=True))
-    return centred
+        centred.append((flat - flat.mean(dim=-1, keepdim=True)) * inv_rms)
+    return centred, power
 
 
-def _kurtosis_from_centred(centred: list[Tensor], eps: Tensor) -> Tensor:
+def _kurtosis_from_centred(centred: list[Tensor], like: Tensor) -> Tensor:
     kurtosis = []
     for z in centred:
         m2 = z.square().mean(dim=-1)  # [B, C, 3]
         # standardize first: (z / sqrt(m2 + eps))^4 keeps the 4th power in range where z^4 would underflow
-        standardized = z * torch.rsqrt(m2 + eps).unsqueeze(-1)
+        standardized = z * torch.rsqrt(m2 + VARIANCE_REL_EPS).unsqueeze(-1)
         kurtosis.append(standardized.square().square().mean(dim=-1) - 3.0)
     if not kurtosis:
-        return eps.new_zeros((*eps.shape[:-1], 0))
+        return like.new_zeros((*like.shape[:2], 0))
     return torch.cat(kurtosis, dim=-1)
 
 
@@ -106,7 +112,7 @@ def band_kurtosis(coeffs: WaveletCoeffs) -> Tensor:
     k_b = m4_b / (m2_b + eps)^2 - 3 with central moments m_k; equals `scipy.stats.kurtosis(band, fisher=True,
     bias=True)` up to the relative eps (a constant band gives -3, not NaN).
     """
-    return _kurtosis_from_centred(_centred_levels(coeffs), _variance_eps(coeffs))
+    return _kurtosis_from_centred(_normalized_levels(coeffs)[0], coeffs.approx)
 
 
 def kurtosis_spread(kurtosis: Tensor) -> Tensor:
@@ -116,15 +122,16 @@ def kurtosis_spread(kurtosis: Tensor) -> Tensor:
     return kurtosis.amax(dim=-1) - kurtosis.amin(dim=-1)
 
 
-def _covariances_from_centred(centred: list[Tensor], eps: Tensor, correlation: bool) -> list[Tensor]:
+def _covariances_from_centred(centred: list[Tensor], power: Tensor, correlation: bool) -> list[Tensor]:
     covariances = []
     for z in centred:
         count = z.shape[-1]
         cov = z @ z.transpose(-1, -2) / max(count - 1, 1)  # [B, C, 3, 3]; numpy.cov's (P - 1) normalization
         if correlation:
-            var = torch.diagonal(cov, dim1=-2, dim2=-1) + eps  # eps is a variance too (same scale)
-            inv_std = torch.rsqrt(var)
+            inv_std = torch.rsqrt(torch.diagonal(cov, dim1=-2, dim2=-1) + VARIANCE_REL_EPS)
             cov = cov * inv_std.unsqueeze(-1) * inv_std.unsqueeze(-2)
+        else:
+            cov = cov * power.unsqueeze(-1)  # undo the normalization: cov(c) = s^2 cov(c / s)
         covariances.append(cov)
     return covariances
 
@@ -134,7 +141,7 @@ def cross_band_covariance(coeffs: WaveletCoeffs, correlation: bool = False) -> l
 
     Equals `numpy.cov(np.stack([cH, cV, cD]).reshape(3, -1))` (correlation: `numpy.corrcoef`, up to eps).
     """
-    return _covariances_from_centred(_centred_levels(coeffs), _variance_eps(coeffs), correlation)
+    return _covariances_from_centred(*_normalized_levels(coeffs), correlation)
 
 
 def _off_diagonal_energy(covariances: list[Tensor], like: Tensor) -> Tensor:
@@ -196,10 +203,9 @@ def prepare_target(
     _check_image(gt, "gt")
     with torch.no_grad():
         coeffs = dwt2(gt.detach(), wave=wave, levels=levels, mode=mode)
-        centred = _centred_levels(coeffs)
-        eps = _variance_eps(coeffs)
-        kurtosis = _kurtosis_from_centred(centred, eps)
-        l_cov = _off_diagonal_energy(_covariances_from_centred(centred, eps, correlation), coeffs.approx)
+        centred, power = _normalized_levels(coeffs)
+        kurtosis = _kurtosis_from_centred(centred, coeffs.approx)
+        l_cov = _off_diagonal_energy(_covariances_from_centred(centred, power, correlation), coeffs.approx)
     return WaveletTarget(
         coeffs=coeffs,
         kurtosis=kurtosis,
@@ -247,7 +253,14 @@ def _check_same_layout(pred: WaveletCoeffs, gt: WaveletCoeffs) -> None:
 # --------------------------------------------------------------------------------------------------- losses
 
 
+def _no_band_loss(pred: WaveletCoeffs) -> Tensor:
+    """0 attached to pred's graph: the loss of an image too small for any DWT level (backward gives zeros)."""
+    return pred.approx.sum() * 0.0
+
+
 def _wavelet_l1_coeffs(pred: WaveletCoeffs, gt: WaveletCoeffs, weighting: str) -> Tensor:
+    if pred.levels == 0:
+        return _no_band_loss(pred)
     weights = level_weights(pred.levels, weighting)
     loss = pred.approx.new_zeros(())
     for weight, band_pred, band_gt in zip(weights, pred.details, gt.details):
@@ -278,6 +291,8 @@ def kc_loss(
     supervised: |spread(pred) - spread(gt)| + sum_b |k_b(pred) - k_b(gt)|; unsupervised (gt unused): spread(pred).
     """
     pred_c = _as_coeffs(pred, "pred", wave, levels, mode)
+    if pred_c.levels == 0:
+        return _no_band_loss(pred_c)
     k_pred = band_kurtosis(pred_c)
     if not supervised:
         return kurtosis_spread(k_pred).mean()
@@ -313,6 +328,8 @@ def cbc_loss(
     supervised: |L_cov(pred) - L_cov(gt)|; unsupervised (gt unused): L_cov(pred).
     """
     pred_c = _as_coeffs(pred, "pred", wave, levels, mode)
+    if pred_c.levels == 0:
+        return _no_band_loss(pred_c)
     l_pred = covariance_penalty(pred_c, correlation)
     if not supervised:
         return l_pred.mean()
@@ -399,11 +416,15 @@ class FrequencyLoss(nn.Module):
         losses: dict[str, Tensor] = {}
         if self.wavelet_weight > 0:
             losses["wavelet_loss"] = self.wavelet_weight * _wavelet_l1_coeffs(coeffs, target.coeffs, self.weighting)
-        if self.kc_weight > 0 or self.cbc_weight > 0:
-            centred = _centred_levels(coeffs)
-            eps = _variance_eps(coeffs)
+        if coeffs.levels == 0:  # too small for any level: every active term is an attached 0
+            zero = _no_band_loss(coeffs)
+            for key, weight in (("kc_loss", self.kc_weight), ("cbc_loss", self.cbc_weight)):
+                if weight > 0:
+                    losses[key] = zero
+        elif self.kc_weight > 0 or self.cbc_weight > 0:
+            centred, power = _normalized_levels(coeffs)
             if self.kc_weight > 0:
-                k_pred = _kurtosis_from_centred(centred, eps)
+                k_pred = _kurtosis_from_centred(centred, coeffs.approx)
                 if self.kc_supervised:
                     kc = _kc_from_kurtosis(k_pred, target.kurtosis, target.spread)
                 else:
@@ -411,7 +432,7 @@ class FrequencyLoss(nn.Module):
                 losses["kc_loss"] = self.kc_weight * kc
             if self.cbc_weight > 0:
                 l_pred = _off_diagonal_energy(
-                    _covariances_from_centred(centred, eps, self.cbc_correlation), coeffs.approx
+                    _covariances_from_centred(centred, power, self.cbc_correlation), coeffs.approx
                 )
                 cbc = (l_pred - target.l_cov).abs().mean() if self.cbc_supervised else l_pred.mean()
                 losses["cbc_loss"] = self.cbc_weight * cbc
