@@ -267,3 +267,23 @@ def test_band_kurtosis_for_logging_layouts(castle_p30):
     np.testing.assert_allclose(from_bchw, expected, rtol=1e-6)
     np.testing.assert_allclose(from_hwc, expected, rtol=1e-6)
     np.testing.assert_allclose(from_target, expected, rtol=1e-6)
+
+
+@pytest.mark.parametrize("term", ["kurtosis", "covariance", "correlation", "kc", "kc_unsupervised", "cbc", "module"])
+def test_gradcheck_float64(term):
+    # the band statistics have a hand-written backward: check it against finite differences
+    torch.manual_seed(1)
+    pred = torch.rand(2, 1, 20, 21, dtype=torch.float64, requires_grad=True)
+    gt = torch.rand(2, 1, 20, 21, dtype=torch.float64)
+    options = {"levels": 2}
+    functions = {
+        "kurtosis": lambda p: band_kurtosis(dwt2(p, levels=2)),
+        "covariance": lambda p: torch.stack(cross_band_covariance(dwt2(p, levels=2))),
+        "correlation": lambda p: torch.stack(cross_band_covariance(dwt2(p, levels=2), correlation=True)),
+        "kc": lambda p: kc_loss(p, gt, **options),
+        "kc_unsupervised": lambda p: kc_loss(p, supervised=False, **options),
+        "cbc": lambda p: cbc_loss(p, gt, **options) * 1e4,
+        "module": lambda p: torch.stack(list(FrequencyLoss(1.0, 1.0, 1e4, levels=2)(p, gt).values())),
+    }
+    # fast mode: the Jacobian against finite differences along random directions (full mode is ~10x slower)
+    assert torch.autograd.gradcheck(functions[term], (pred,), eps=1e-6, atol=1e-6, rtol=1e-5, fast_mode=True)

@@ -153,3 +153,17 @@ def test_bad_arguments_raise(kwargs, match):
 def test_bad_shape_raises():
     with pytest.raises(ValueError, match=r"\[B, C, H, W\]"):
         dwt2(torch.rand(32, 32))
+
+
+@pytest.mark.parametrize("mode", ["symmetric", "reflect", "periodization"])
+def test_fast_padding_equals_index_map_on_short_axes(mode):
+    # dwt2 pads with slices / F.pad when the extension fits the axis and with an index gather otherwise; both must
+    # build the same extension (pywt's), including axes shorter than the filter
+    from kc_splatfacto.losses.wavelets import _index_tensor, _pad
+
+    for flen in (2, 6, 12):
+        for height, width in [(1, 1), (2, 5), (5, 6), (11, 12), (13, 20)]:
+            x = torch.rand(2, 1, height, width)
+            rows = _index_tensor(height, flen, mode, x.device)
+            cols = _index_tensor(width, flen, mode, x.device)
+            torch.testing.assert_close(_pad(x, flen, mode), x.index_select(-2, rows).index_select(-1, cols), rtol=0, atol=0)

@@ -24,6 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from kc_splatfacto.losses.wavelets import MODES, WaveletCoeffs, dwt2
@@ -44,7 +45,8 @@ POWER_FLOOR = 1e-30
 
 
 def _check_finite(x: Tensor, name: str) -> None:
-    if not bool(torch.isfinite(x).all()):
+    # one reduction pass: a NaN/Inf anywhere makes the sum non-finite (only then is the exact check needed)
+    if not bool(torch.isfinite(x.sum())) and not bool(torch.isfinite(x).all()):
         raise ValueError(
             f"'{name}' contains NaN or Inf values; the frequency losses need finite images "
             f"(check the renderer output / the loaded image for '{name}')"
@@ -78,29 +80,70 @@ def _image_power(coeffs: WaveletCoeffs) -> Tensor:
         total = coeffs.approx.square().sum(dim=(-2, -1))
         count = coeffs.approx.shape[-2] * coeffs.approx.shape[-1]
         for band in coeffs.details:
-            total = total + band.square().sum(dim=(-4, -2, -1))
+            total = total + torch.linalg.vector_norm(band, dim=(-3, -2, -1)).square()
             count += band.shape[-3] * band.shape[-2] * band.shape[-1]
         return (total / count).clamp_min(POWER_FLOOR).unsqueeze(-1)
 
 
-def _normalized_levels(coeffs: WaveletCoeffs) -> tuple[list[Tensor], Tensor]:
-    """Per level, the centred flattened subbands divided by the image's RMS, [B, C, 3, P_j]; and the power [B, C, 1]."""
+class _CentredMoments(torch.autograd.Function):
+    """Moments of centred, RMS-normalized subbands z = (x - mean(x)) / s of one level, with an analytic backward.
+
+    x [N, 3, P] -> m2 [N, 3] = mean z^2, m4 [N, 3] = mean z^4 (if wanted), cov [N, 3, 3] = z z^T / (P - 1) (if wanted).
+    Backward: dz = z (2 g2 + 4 g4 z^2) / P + (G + G^T) z / (P - 1), then dx = (dz - mean(dz)) / s. That is ~5 passes
+    over the band where autograd through the elementwise chain takes ~12 (the losses' main cost after the DWT).
+    s is a detached constant.
+    """
+
+    @staticmethod
+    def forward(ctx, flat: Tensor, inv_rms: Tensor, want_m4: bool, want_cov: bool):
+        count = flat.shape[-1]
+        z = torch.addcmul(-flat.mean(dim=-1, keepdim=True) * inv_rms, flat, inv_rms)  # (x - mean) / s, fused
+        m2 = torch.linalg.vecdot(z, z) / count
+        m4 = cov = None
+        if want_m4:
+            z2 = z.square()
+            m4 = torch.linalg.vecdot(z2, z2) / count
+        if want_cov:
+            cov = torch.matmul(z, z.transpose(-1, -2)) / max(count - 1, 1)  # numpy.cov's (P - 1) normalization
+        ctx.save_for_backward(z, inv_rms)
+        return m2, m4, cov
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_m2, grad_m4, grad_cov):
+        z, inv_rms = ctx.saved_tensors
+        count = z.shape[-1]
+        coef2 = (2.0 / count) * grad_m2.unsqueeze(-1) if grad_m2 is not None else None
+        if grad_m4 is not None:
+            grad = z.square().mul_((4.0 / count) * grad_m4.unsqueeze(-1))
+            if coef2 is not None:
+                grad.add_(coef2)
+            grad.mul_(z)
+        elif coef2 is not None:
+            grad = z * coef2
+        else:
+            grad = torch.zeros_like(z)
+        if grad_cov is not None:
+            sym = (grad_cov + grad_cov.transpose(-1, -2)) / max(count - 1, 1)
+            lead = z.shape[:-2]
+            grad.view(-1, *z.shape[-2:]).baddbmm_(sym.reshape(-1, 3, 3), z.reshape(-1, *z.shape[-2:]))
+            grad = grad.view(*lead, *z.shape[-2:])
+        grad.sub_(grad.mean(dim=-1, keepdim=True)).mul_(inv_rms)
+        return grad, None, None, None
+
+
+def _level_moments(coeffs: WaveletCoeffs, want_m4: bool, want_cov: bool) -> tuple[list[tuple], Tensor]:
+    """Per level (m2 [B, C, 3], m4 or None, cov [B, C, 3, 3] or None) of the RMS-normalized centred subbands,
+    and the image power s^2 [B, C, 1] they are normalized by."""
     power = _image_power(coeffs)
     inv_rms = torch.rsqrt(power).unsqueeze(-1)  # [B, C, 1, 1]
-    centred = []
-    for band in coeffs.details:
-        flat = band.flatten(-2)
-        centred.append((flat - flat.mean(dim=-1, keepdim=True)) * inv_rms)
-    return centred, power
+    moments = [_CentredMoments.apply(band.flatten(-2), inv_rms, want_m4, want_cov) for band in coeffs.details]
+    return moments, power
 
 
-def _kurtosis_from_centred(centred: list[Tensor], like: Tensor) -> Tensor:
-    kurtosis = []
-    for z in centred:
-        m2 = z.square().mean(dim=-1)  # [B, C, 3]
-        # standardize first: (z / sqrt(m2 + eps))^4 keeps the 4th power in range where z^4 would underflow
-        standardized = z * torch.rsqrt(m2 + VARIANCE_REL_EPS).unsqueeze(-1)
-        kurtosis.append(standardized.square().square().mean(dim=-1) - 3.0)
+def _kurtosis_from_moments(moments: list[tuple], like: Tensor) -> Tensor:
+    # the moments are O(1) (normalized by the image RMS), so m4 neither overflows nor underflows where it matters
+    kurtosis = [m4 / (m2 + VARIANCE_REL_EPS).square() - 3.0 for m2, m4, _ in moments]
     if not kurtosis:
         return like.new_zeros((*like.shape[:2], 0))
     return torch.cat(kurtosis, dim=-1)
@@ -112,7 +155,7 @@ def band_kurtosis(coeffs: WaveletCoeffs) -> Tensor:
     k_b = m4_b / (m2_b + eps)^2 - 3 with central moments m_k; equals `scipy.stats.kurtosis(band, fisher=True,
     bias=True)` up to the relative eps (a constant band gives -3, not NaN).
     """
-    return _kurtosis_from_centred(_normalized_levels(coeffs)[0], coeffs.approx)
+    return _kurtosis_from_moments(_level_moments(coeffs, True, False)[0], coeffs.approx)
 
 
 def kurtosis_spread(kurtosis: Tensor) -> Tensor:
@@ -122,11 +165,9 @@ def kurtosis_spread(kurtosis: Tensor) -> Tensor:
     return kurtosis.amax(dim=-1) - kurtosis.amin(dim=-1)
 
 
-def _covariances_from_centred(centred: list[Tensor], power: Tensor, correlation: bool) -> list[Tensor]:
+def _covariances_from_moments(moments: list[tuple], power: Tensor, correlation: bool) -> list[Tensor]:
     covariances = []
-    for z in centred:
-        count = z.shape[-1]
-        cov = z @ z.transpose(-1, -2) / max(count - 1, 1)  # [B, C, 3, 3]; numpy.cov's (P - 1) normalization
+    for _, _, cov in moments:
         if correlation:
             inv_std = torch.rsqrt(torch.diagonal(cov, dim1=-2, dim2=-1) + VARIANCE_REL_EPS)
             cov = cov * inv_std.unsqueeze(-1) * inv_std.unsqueeze(-2)
@@ -141,7 +182,7 @@ def cross_band_covariance(coeffs: WaveletCoeffs, correlation: bool = False) -> l
 
     Equals `numpy.cov(np.stack([cH, cV, cD]).reshape(3, -1))` (correlation: `numpy.corrcoef`, up to eps).
     """
-    return _covariances_from_centred(*_normalized_levels(coeffs), correlation)
+    return _covariances_from_moments(*_level_moments(coeffs, False, True), correlation)
 
 
 def _off_diagonal_energy(covariances: list[Tensor], like: Tensor) -> Tensor:
@@ -203,9 +244,9 @@ def prepare_target(
     _check_image(gt, "gt")
     with torch.no_grad():
         coeffs = dwt2(gt.detach(), wave=wave, levels=levels, mode=mode)
-        centred, power = _normalized_levels(coeffs)
-        kurtosis = _kurtosis_from_centred(centred, coeffs.approx)
-        l_cov = _off_diagonal_energy(_covariances_from_centred(centred, power, correlation), coeffs.approx)
+        moments, power = _level_moments(coeffs, True, True)
+        kurtosis = _kurtosis_from_moments(moments, coeffs.approx)
+        l_cov = _off_diagonal_energy(_covariances_from_moments(moments, power, correlation), coeffs.approx)
     return WaveletTarget(
         coeffs=coeffs,
         kurtosis=kurtosis,
@@ -265,7 +306,7 @@ def _wavelet_l1_coeffs(pred: WaveletCoeffs, gt: WaveletCoeffs, weighting: str) -
     loss = pred.approx.new_zeros(())
     for weight, band_pred, band_gt in zip(weights, pred.details, gt.details):
         # sum over the 3 orientations of each one's mean = 3 * mean over the level's [B, C, 3, h, w]
-        loss = loss + (weight * 3.0) * (band_pred - band_gt).abs().mean()
+        loss = loss + (weight * 3.0) * F.l1_loss(band_pred, band_gt)
     return loss
 
 
@@ -422,9 +463,9 @@ class FrequencyLoss(nn.Module):
                 if weight > 0:
                     losses[key] = zero
         elif self.kc_weight > 0 or self.cbc_weight > 0:
-            centred, power = _normalized_levels(coeffs)
+            moments, power = _level_moments(coeffs, self.kc_weight > 0, self.cbc_weight > 0)
             if self.kc_weight > 0:
-                k_pred = _kurtosis_from_centred(centred, coeffs.approx)
+                k_pred = _kurtosis_from_moments(moments, coeffs.approx)
                 if self.kc_supervised:
                     kc = _kc_from_kurtosis(k_pred, target.kurtosis, target.spread)
                 else:
@@ -432,7 +473,7 @@ class FrequencyLoss(nn.Module):
                 losses["kc_loss"] = self.kc_weight * kc
             if self.cbc_weight > 0:
                 l_pred = _off_diagonal_energy(
-                    _covariances_from_centred(centred, power, self.cbc_correlation), coeffs.approx
+                    _covariances_from_moments(moments, power, self.cbc_correlation), coeffs.approx
                 )
                 cbc = (l_pred - target.l_cov).abs().mean() if self.cbc_supervised else l_pred.mean()
                 losses["cbc_loss"] = self.cbc_weight * cbc

@@ -191,11 +191,78 @@ def _index_tensor(n: int, filter_len: int, mode: str, device: torch.device) -> T
     return index
 
 
+class _SymmetricPad2d(torch.autograd.Function):
+    """Half-sample symmetric extension of both spatial axes (needs before, after <= size).
+
+    Forward is slices, flips and cats; the backward folds the border gradients back onto the image in place. (Plain
+    autograd through the slices would allocate and zero-fill a full-size gradient per slice: 4 extra passes.)
+    """
+
+    @staticmethod
+    def forward(ctx, x: Tensor, before: int, after: int) -> Tensor:
+        ctx.pads = (before, after)
+        x = torch.cat([x[..., :before, :].flip(-2), x, x[..., x.shape[-2] - after :, :].flip(-2)], dim=-2)
+        return torch.cat([x[..., :before].flip(-1), x, x[..., x.shape[-1] - after :].flip(-1)], dim=-1)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        before, after = ctx.pads
+        return _fold_symmetric(grad, before, after), None, None
+
+
+def _fold_symmetric(grad: Tensor, before: int, after: int) -> Tensor:
+    """Adjoint of the symmetric extension: [.., H + b + a, W + b + a] -> [.., H, W] (differentiable torch ops)."""
+    height = grad.shape[-2] - before - after
+    width = grad.shape[-1] - before - after
+    folded = grad[..., before : before + height, before : before + width].clone()
+    rows = grad[..., before : before + height, :]
+    if before:
+        folded[..., :, :before] += rows[..., :before].flip(-1)
+    if after:
+        folded[..., :, width - after :] += rows[..., before + width :].flip(-1)
+    cols = grad[..., :, before : before + width]
+    if before:
+        folded[..., :before, :] += cols[..., :before, :].flip(-2)
+        # corners: extended on both axes
+        folded[..., :before, :before] += grad[..., :before, :before].flip(-2, -1)
+        if after:
+            folded[..., :before, width - after :] += grad[..., :before, before + width :].flip(-2, -1)
+    if after:
+        folded[..., height - after :, :] += cols[..., before + height :, :].flip(-2)
+        folded[..., height - after :, width - after :] += grad[..., before + height :, before + width :].flip(-2, -1)
+        if before:
+            folded[..., height - after :, :before] += grad[..., before + height :, :before].flip(-2, -1)
+    return folded
+
+
+def _symmetric_pad(x: Tensor, before: int, after: int) -> Tensor:
+    return _SymmetricPad2d.apply(x, before, after)
+
+
 def _pad(x: Tensor, filter_len: int, mode: str) -> Tensor:
-    """Extend [N, 1, H, W] on both spatial axes so a valid stride-2 correlation yields one DWT level."""
-    if mode == "zero":
-        return F.pad(x, (filter_len - 2, filter_len - 1, filter_len - 2, filter_len - 1))
+    """Extend [N, 1, H, W] on both spatial axes so a valid stride-2 correlation yields one DWT level.
+
+    Fast paths (F.pad / slices, ~3x cheaper than a gather forward and backward) whenever the extension is shorter
+    than the axis, which `dwt_max_level` guarantees for every level it keeps; the index gather covers the rest.
+    """
     height, width = x.shape[-2:]
+    before, after = filter_len - 2, filter_len - 1
+    if mode == "zero":
+        return F.pad(x, (before, after, before, after))
+    if mode == "symmetric" and after <= min(height, width):
+        return _symmetric_pad(x, before, after)
+    if mode == "reflect" and after < min(height, width):
+        return F.pad(x, (before, after, before, after), mode="reflect")
+    if mode == "periodization":
+        # an odd axis first repeats its last sample (PyWavelets), then wraps around by L/2 - 1 on both sides
+        if height % 2:
+            x = torch.cat([x, x[..., -1:, :]], dim=-2)
+        if width % 2:
+            x = torch.cat([x, x[..., -1:]], dim=-1)
+        wrap = filter_len // 2 - 1
+        if wrap <= min(x.shape[-2:]):
+            return F.pad(x, (wrap, wrap, wrap, wrap), mode="circular") if wrap else x
+        height, width = x.shape[-2:]  # even now: the index map below sees no odd axis
     rows = _index_tensor(height, filter_len, mode, x.device)
     cols = _index_tensor(width, filter_len, mode, x.device)
     return x.index_select(-2, rows).index_select(-1, cols)
@@ -248,7 +315,8 @@ def dwt2(x: Tensor, wave: str = "db3", levels: int = 3, mode: str = "symmetric")
     for _ in range(kept):
         out = F.conv2d(_pad(current, flen, mode), bank, stride=2)  # [B*C, 4, h, w]
         h, w = out.shape[-2:]
-        details.append(out[:, 1:].reshape(batch, channels, 3, h, w))
-        current = out[:, :1]
+        # split, not two slices: its backward is one cat instead of two zero-filled full-size buffers
+        current, detail = out.split([1, 3], dim=1)
+        details.append(detail.reshape(batch, channels, 3, h, w))
     approx = current.reshape(batch, channels, *current.shape[-2:])
     return WaveletCoeffs(approx=approx, details=details)
