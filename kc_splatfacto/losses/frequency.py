@@ -99,36 +99,36 @@ class _CentredMoments(torch.autograd.Function):
         count = flat.shape[-1]
         z = torch.addcmul(-flat.mean(dim=-1, keepdim=True) * inv_rms, flat, inv_rms)  # (x - mean) / s, fused
         m2 = torch.linalg.vecdot(z, z) / count
-        m4 = cov = None
+        m4 = cov = z2 = None
         if want_m4:
-            z2 = z.square()
+            z2 = z.square()  # kept for the backward: saves two passes there
             m4 = torch.linalg.vecdot(z2, z2) / count
         if want_cov:
             cov = torch.matmul(z, z.transpose(-1, -2)) / max(count - 1, 1)  # numpy.cov's (P - 1) normalization
-        ctx.save_for_backward(z, inv_rms)
+        ctx.save_for_backward(z, z2, inv_rms)
         return m2, m4, cov
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_m2, grad_m4, grad_cov):
-        z, inv_rms = ctx.saved_tensors
+        z, z2, inv_rms = ctx.saved_tensors
         count = z.shape[-1]
-        coef2 = (2.0 / count) * grad_m2.unsqueeze(-1) if grad_m2 is not None else None
+        # the 1/s of dx = (dz - mean(dz)) / s is folded into the small coefficients, not applied to the band
+        scale = inv_rms.squeeze(-1)  # [..., 1]
+        coef2 = ((2.0 / count) * grad_m2 * scale).unsqueeze(-1) if grad_m2 is not None else None
         if grad_m4 is not None:
-            grad = z.square().mul_((4.0 / count) * grad_m4.unsqueeze(-1))
-            if coef2 is not None:
-                grad.add_(coef2)
+            coef4 = ((4.0 / count) * grad_m4 * scale).unsqueeze(-1)
+            grad = torch.addcmul(coef2, z2, coef4) if coef2 is not None else z2 * coef4
             grad.mul_(z)
         elif coef2 is not None:
             grad = z * coef2
         else:
             grad = torch.zeros_like(z)
         if grad_cov is not None:
-            sym = (grad_cov + grad_cov.transpose(-1, -2)) / max(count - 1, 1)
-            lead = z.shape[:-2]
-            grad.view(-1, *z.shape[-2:]).baddbmm_(sym.reshape(-1, 3, 3), z.reshape(-1, *z.shape[-2:]))
-            grad = grad.view(*lead, *z.shape[-2:])
-        grad.sub_(grad.mean(dim=-1, keepdim=True)).mul_(inv_rms)
+            sym = (grad_cov + grad_cov.transpose(-1, -2)) * (inv_rms / max(count - 1, 1))
+            matrix = z.shape[-2:]
+            grad.view(-1, *matrix).baddbmm_(sym.reshape(-1, 3, 3), z.reshape(-1, *matrix))
+        grad.sub_(grad.mean(dim=-1, keepdim=True))
         return grad, None, None, None
 
 

@@ -201,8 +201,15 @@ class _SymmetricPad2d(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x: Tensor, before: int, after: int) -> Tensor:
         ctx.pads = (before, after)
-        x = torch.cat([x[..., :before, :].flip(-2), x, x[..., x.shape[-2] - after :, :].flip(-2)], dim=-2)
-        return torch.cat([x[..., :before].flip(-1), x, x[..., x.shape[-1] - after :].flip(-1)], dim=-1)
+        height, width = x.shape[-2:]
+        # one full-size copy (two cats would make two); the borders are small copies of flipped strips
+        out = x.new_empty((*x.shape[:-2], height + before + after, width + before + after))
+        out[..., before : before + height, before : before + width] = x
+        out[..., :before, before : before + width] = x[..., :before, :].flip(-2)
+        out[..., before + height :, before : before + width] = x[..., height - after :, :].flip(-2)
+        out[..., :, :before] = out[..., :, before : 2 * before].flip(-1)
+        out[..., :, before + width :] = out[..., :, before + width - after : before + width].flip(-1)
+        return out
 
     @staticmethod
     def backward(ctx, grad: Tensor):
