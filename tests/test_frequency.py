@@ -221,6 +221,16 @@ def test_frequency_loss_weighting_option(heavy_tailed_pair):
         torch.testing.assert_close(out["wavelet_loss"], wavelet_l1(pred, gt, weighting=weighting))
 
 
+def test_float64_cached_target_serves_a_float32_prediction(heavy_tailed_pair):
+    pred, gt = (torch.tensor(a) for a in heavy_tailed_pair)
+    loss = FrequencyLoss(1.0, 1.0, 1.0)
+    mixed = loss(pred.float(), loss.prepare_target(gt))  # target cached in float64
+    same = loss(pred.float(), loss.prepare_target(gt.float()))
+    for key, value in mixed.items():
+        assert value.dtype == torch.float32
+        torch.testing.assert_close(value, same[key], rtol=1e-4, atol=1e-7)
+
+
 def test_target_with_other_settings_is_refused():
     gt = torch.rand(1, 3, 64, 64)
     target = FrequencyLoss(mode="zero").prepare_target(gt)

@@ -451,9 +451,10 @@ class FrequencyLoss(nn.Module):
             raise ValueError(
                 f"pred {tuple(pred.shape)} and target {tuple(target.image_shape)} must have the same [B, C, H, W]"
             )
-        if target.device != pred.device:
-            target = target.to(pred.device)
         coeffs = dwt2(pred, wave=self.wave, levels=self.levels, mode=self.mode)
+        reference = coeffs.approx
+        if target.device != reference.device or target.coeffs.approx.dtype != reference.dtype:
+            target = target.to(device=reference.device, dtype=reference.dtype)  # e.g. a float64 or CPU cache
         losses: dict[str, Tensor] = {}
         if self.wavelet_weight > 0:
             losses["wavelet_loss"] = self.wavelet_weight * _wavelet_l1_coeffs(coeffs, target.coeffs, self.weighting)
