@@ -156,8 +156,10 @@ def padding_table(sigmas=(0.0, 1.5, 3.0)) -> None:
     with Image.open(photo) as img:
         rgb = torch.from_numpy(np.asarray(img.convert("RGB"), dtype=np.float64) / 255.0)
     image = rgb.permute(2, 0, 1)[None].contiguous()
-    print(f"\npadding table: {photo.name} {image.shape[-1]}x{image.shape[-2]}, Gaussian blur sigma (px), db3, "
-          f"finest-level excess kurtosis (cH, cV, cD), mean over RGB; last column: mean of all 9 bands")
+    print(
+        f"\npadding table: {photo.name} {image.shape[-1]}x{image.shape[-2]}, Gaussian blur sigma (px), db3, "
+        f"finest-level excess kurtosis (cH, cV, cD), mean over RGB; last column: mean of all 9 bands"
+    )
     print(f"{'sigma':>6s} {'mode':14s} {'cH':>9s} {'cV':>9s} {'cD':>9s} {'all 9':>9s}")
     for sigma in sigmas:
         blurred = _gaussian_blur(image, sigma) if sigma > 0 else image
@@ -188,8 +190,10 @@ def main() -> None:
     device = torch.device(args.device)
     cases = make_cases(device)
     base = "dwt2 (ours, 4-filter conv)"
-    print(f"device {device}, torch {torch.__version__}, threads {torch.get_num_threads()}, {WAVE} {LEVELS} levels "
-          f"{MODE}, batch 1 x 3 channels, forward+backward, median ms")
+    print(
+        f"device {device}, torch {torch.__version__}, threads {torch.get_num_threads()}, {WAVE} {LEVELS} levels "
+        f"{MODE}, batch 1 x 3 channels, forward+backward, median ms"
+    )
     results = {}
     for size in args.sizes:
         repeats = (5 if args.quick else 21) if size <= 512 else (3 if args.quick else 9)
@@ -214,8 +218,10 @@ def main() -> None:
         ptwt_ms = results[("ptwt.wavedec2", size)]
         cached = results[("FrequencyLoss, cached GT", size)] / results[(base, size)]
         verdict = "n/a" if isinstance(ptwt_ms, str) else ("yes" if results[(base, size)] <= ptwt_ms else "NO")
-        print(f"{size} px: dwt2 at least as fast as ptwt: {verdict}; FrequencyLoss cached / dwt2 = {cached:.2f} "
-              f"(target <= 1.5: {'yes' if cached <= 1.5 else 'NO'})")
+        print(
+            f"{size} px: dwt2 at least as fast as ptwt: {verdict}; FrequencyLoss cached / dwt2 = {cached:.2f} "
+            f"(target <= 1.5: {'yes' if cached <= 1.5 else 'NO'})"
+        )
     if not args.no_padding_table:
         padding_table()
 

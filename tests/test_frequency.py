@@ -74,9 +74,7 @@ def test_wavelet_l1_matches_numpy(heavy_tailed_pair, weighting):
     for j in range(3):
         for o in range(3):
             diffs = [
-                np.abs(pywt_bands(pred[b, c])[j][o] - pywt_bands(gt[b, c])[j][o])
-                for b in range(2)
-                for c in range(3)
+                np.abs(pywt_bands(pred[b, c])[j][o] - pywt_bands(gt[b, c])[j][o]) for b in range(2) for c in range(3)
             ]
             expected += weights[j] * np.mean(np.stack(diffs))
     ours = wavelet_l1(torch.tensor(pred), torch.tensor(gt), weighting=weighting)
@@ -90,7 +88,9 @@ def test_band_kurtosis_matches_scipy(heavy_tailed_pair):
     for b in range(2):
         for c in range(3):
             bands = pywt_bands(pred[b, c])
-            expected = [scipy.stats.kurtosis(bands[j][o].ravel(), fisher=True, bias=True) for j in range(3) for o in range(3)]
+            expected = [
+                scipy.stats.kurtosis(bands[j][o].ravel(), fisher=True, bias=True) for j in range(3) for o in range(3)
+            ]
             np.testing.assert_allclose(ours[b, c], expected, rtol=1e-4)
     assert ours[..., :3].min() > 0.5  # really heavy-tailed data (the finest bands have the most samples)
 
@@ -100,7 +100,9 @@ def test_band_kurtosis_float32_matches_scipy_on_real_image(castle_p30):
     ours = band_kurtosis(dwt2(image.float())).numpy()
     for c in range(3):
         bands = pywt_bands(image[0, c].numpy())
-        expected = [scipy.stats.kurtosis(bands[j][o].ravel(), fisher=True, bias=True) for j in range(3) for o in range(3)]
+        expected = [
+            scipy.stats.kurtosis(bands[j][o].ravel(), fisher=True, bias=True) for j in range(3) for o in range(3)
+        ]
         np.testing.assert_allclose(ours[0, c], expected, rtol=1e-4)
 
 

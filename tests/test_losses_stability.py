@@ -85,12 +85,18 @@ def test_small_image_with_one_level_matches_pywt_statistics():
 @pytest.mark.parametrize("scale", [1e4, 1e-6])
 def test_intensity_scale_changes_nothing_but_the_units(photo, scale):
     pred = blur(photo.double(), 1.0).float()
-    base, base_grad = all_terms(pred, photo)
+    base, _ = all_terms(pred, photo)
     scaled, scaled_grad = all_terms(pred * scale, photo * scale)
     assert_finite(scaled, scaled_grad)
     # kurtosis and correlation are scale-invariant; wavelet L1 is 1-homogeneous; covariance energy 4-homogeneous
-    for key, power in [("kc_loss", 0), ("kc_unsupervised", 0), ("cbc_correlation", 0), ("wavelet_loss", 1),
-                       ("cbc_loss", 4), ("cbc_unsupervised", 4)]:
+    for key, power in [
+        ("kc_loss", 0),
+        ("kc_unsupervised", 0),
+        ("cbc_correlation", 0),
+        ("wavelet_loss", 1),
+        ("cbc_loss", 4),
+        ("cbc_unsupervised", 4),
+    ]:
         np.testing.assert_allclose(float(scaled[key]), float(base[key]) * scale**power, rtol=2e-3, err_msg=key)
     k_base = band_kurtosis(dwt2(photo))
     k_scaled = band_kurtosis(dwt2(photo * scale))
@@ -110,7 +116,9 @@ def test_single_bright_pixel_reaches_maximal_kurtosis():
     image32 = image.float()
     coeffs = dwt2(image32)
     ours = band_kurtosis(coeffs)[0, 0].numpy()
-    expected = [scipy.stats.kurtosis(level[0, 0, o].flatten().double().numpy()) for level in coeffs.details for o in range(3)]
+    expected = [
+        scipy.stats.kurtosis(level[0, 0, o].flatten().double().numpy()) for level in coeffs.details for o in range(3)
+    ]
     np.testing.assert_allclose(ours, expected, rtol=1e-4)
     assert ours[:3].min() > 100
     terms, grad = all_terms(image32, torch.zeros_like(image32))
@@ -123,8 +131,13 @@ def test_non_finite_pred_raises_naming_pred(bad):
     pred[0, 1, 5, 7] = bad
     gt = torch.rand(1, 3, 48, 48)
     loss = FrequencyLoss()
-    for call in (lambda: loss(pred, gt), lambda: loss(pred, loss.prepare_target(gt)), lambda: wavelet_l1(pred, gt),
-                 lambda: kc_loss(pred, gt), lambda: cbc_loss(pred, gt)):
+    for call in (
+        lambda: loss(pred, gt),
+        lambda: loss(pred, loss.prepare_target(gt)),
+        lambda: wavelet_l1(pred, gt),
+        lambda: kc_loss(pred, gt),
+        lambda: cbc_loss(pred, gt),
+    ):
         with pytest.raises(ValueError, match="'pred'"):
             call()
 
@@ -137,8 +150,13 @@ def test_non_finite_gt_raises_naming_gt(bad):
     loss = FrequencyLoss()
     with pytest.raises(ValueError, match="'target'"):
         loss(pred, gt)
-    for call in (lambda: loss.prepare_target(gt), lambda: prepare_target(gt), lambda: wavelet_l1(pred, gt),
-                 lambda: kc_loss(pred, gt), lambda: cbc_loss(pred, gt)):
+    for call in (
+        lambda: loss.prepare_target(gt),
+        lambda: prepare_target(gt),
+        lambda: wavelet_l1(pred, gt),
+        lambda: kc_loss(pred, gt),
+        lambda: cbc_loss(pred, gt),
+    ):
         with pytest.raises(ValueError, match="'gt'"):
             call()
 

@@ -166,4 +166,6 @@ def test_fast_padding_equals_index_map_on_short_axes(mode):
             x = torch.rand(2, 1, height, width)
             rows = _index_tensor(height, flen, mode, x.device)
             cols = _index_tensor(width, flen, mode, x.device)
-            torch.testing.assert_close(_pad(x, flen, mode), x.index_select(-2, rows).index_select(-1, cols), rtol=0, atol=0)
+            torch.testing.assert_close(
+                _pad(x, flen, mode), x.index_select(-2, rows).index_select(-1, cols), rtol=0, atol=0
+            )

@@ -219,7 +219,7 @@ class WaveletTarget:
     correlation: bool
     image_shape: tuple[int, int, int, int]
 
-    def to(self, *args, **kwargs) -> "WaveletTarget":
+    def to(self, *args, **kwargs) -> WaveletTarget:
         return WaveletTarget(
             coeffs=self.coeffs.to(*args, **kwargs),
             kurtosis=self.kurtosis.to(*args, **kwargs),

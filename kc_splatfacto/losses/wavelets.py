@@ -47,10 +47,10 @@ class WaveletCoeffs:
     def levels(self) -> int:
         return len(self.details)
 
-    def detach(self) -> "WaveletCoeffs":
+    def detach(self) -> WaveletCoeffs:
         return WaveletCoeffs(self.approx.detach(), [d.detach() for d in self.details])
 
-    def to(self, *args, **kwargs) -> "WaveletCoeffs":
+    def to(self, *args, **kwargs) -> WaveletCoeffs:
         return WaveletCoeffs(self.approx.to(*args, **kwargs), [d.to(*args, **kwargs) for d in self.details])
 
 
@@ -67,7 +67,7 @@ def _daubechies_order(wave: str) -> int:
     return int(match.group(1))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def daubechies_filters(wave: str) -> tuple[np.ndarray, np.ndarray]:
     """Decomposition filters (dec_lo, dec_hi) of an orthogonal Daubechies wavelet, float64, PyWavelets' convention.
 
@@ -104,7 +104,7 @@ def daubechies_filters(wave: str) -> tuple[np.ndarray, np.ndarray]:
     return dec_lo, dec_hi
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _filter_bank_np(wave: str) -> np.ndarray:
     """[4, 1, L, L] cross-correlation weights of the four 2D analysis filters, in the order (cA, cH, cV, cD).
 
@@ -140,7 +140,7 @@ def dwt_max_level(data_len: int, filter_len: int) -> int:
     """PyWavelets' rule: the deepest level at which the filter still fits the signal (0 when it never does)."""
     if data_len < filter_len - 1:
         return 0
-    return int(math.floor(math.log2(data_len / (filter_len - 1))))
+    return math.floor(math.log2(data_len / (filter_len - 1)))
 
 
 def coeff_length(n: int, filter_len: int, mode: str) -> int:
