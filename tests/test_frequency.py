@@ -208,6 +208,12 @@ def test_frequency_loss_returns_only_active_terms(weights, keys):
     assert set(out) == keys
 
 
+@pytest.mark.parametrize("bad", [-1e-3, float("nan"), float("inf")])
+def test_bad_weight_is_refused(bad):
+    with pytest.raises(ValueError, match="kc_weight"):
+        FrequencyLoss(kc_weight=bad)
+
+
 def test_frequency_loss_unsupervised_and_correlation_options(heavy_tailed_pair):
     pred, gt = (torch.tensor(a) for a in heavy_tailed_pair)
     loss = FrequencyLoss(0.0, 1.0, 1.0, kc_supervised=False, cbc_supervised=False, cbc_correlation=True)
@@ -240,6 +246,14 @@ def test_target_with_other_settings_is_refused():
         FrequencyLoss(mode="symmetric")(torch.rand(1, 3, 64, 64), target)
     with pytest.raises(ValueError, match="same"):
         FrequencyLoss()(torch.rand(1, 3, 64, 32), FrequencyLoss().prepare_target(gt))
+    pred = torch.rand(1, 3, 64, 64)
+    for call in (
+        lambda: wavelet_l1(pred, target),
+        lambda: kc_loss(pred, target),
+        lambda: cbc_loss(pred, target, mode="zero", correlation=True),
+    ):
+        with pytest.raises(ValueError, match="prepare the target"):
+            call()
 
 
 def test_frequency_loss_falls_when_optimized(castle_p30):

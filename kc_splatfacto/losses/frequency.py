@@ -13,7 +13,8 @@ detail subbands in the order (level 1: H, V, D), (level 2: H, V, D), ...; every 
 - L_cov           = sum_j ||Sigma^j - diag(Sigma^j)||_F^2
 - cbc_loss        = |L_cov(pred) - L_cov(gt)|                                         (unsupervised: L_cov(pred))
 The kc and cbc terms are averaged over images and channels. An image too small for any level has no detail band:
-every term is then 0 (still attached to pred's graph, with a zero gradient). `docs/losses.md` explains the choices (weighting, eps).
+every term is then 0 (still attached to pred's graph, with a zero gradient). `docs/losses.md` explains the choices
+(weighting, padding, eps).
 
 The ground truth never needs gradients: `prepare_target(gt)` computes its coefficients and statistics once, detached,
 as a `WaveletTarget` that every loss here accepts in place of the gt image, so a trainer can cache it per image.
@@ -21,6 +22,7 @@ as a `WaveletTarget` that every loss here accepts in place of the gt image, so a
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -152,8 +154,8 @@ def _kurtosis_from_moments(moments: list[tuple], like: Tensor) -> Tensor:
 def band_kurtosis(coeffs: WaveletCoeffs) -> Tensor:
     """Excess (Fisher, biased) kurtosis of every detail subband: [B, C, 3J], bands ordered level-major (H, V, D).
 
-    k_b = m4_b / (m2_b + eps)^2 - 3 with central moments m_k; equals `scipy.stats.kurtosis(band, fisher=True,
-    bias=True)` up to the relative eps (a constant band gives -3, not NaN).
+    k_b = m4_b / (m2_b + eps s^2)^2 - 3 with central moments m_k and s^2 the image's mean coefficient power; equals
+    `scipy.stats.kurtosis(band, fisher=True, bias=True)` up to the relative eps (a constant band gives -3, not NaN).
     """
     return _kurtosis_from_moments(_level_moments(coeffs, True, False)[0], coeffs.approx)
 
@@ -260,10 +262,20 @@ def prepare_target(
     )
 
 
+def _check_target_settings(target: WaveletTarget, wave: str, levels: int, mode: str, correlation: bool) -> None:
+    if (target.wave, target.levels, target.mode, target.correlation) != (wave, levels, mode, correlation):
+        raise ValueError(
+            f"the cached WaveletTarget was prepared with wave={target.wave}, levels={target.levels}, "
+            f"mode={target.mode}, correlation={target.correlation}, but the loss uses wave={wave}, levels={levels}, "
+            f"mode={mode}, correlation={correlation}: prepare the target with the loss's own settings"
+        )
+
+
 def _as_coeffs(x, name: str, wave: str, levels: int, mode: str) -> WaveletCoeffs:
     if isinstance(x, WaveletCoeffs):
         return x
     if isinstance(x, WaveletTarget):
+        _check_target_settings(x, wave, levels, mode, x.correlation)  # correlation only matters for L_cov
         return x.coeffs
     _check_image(x, name)
     return dwt2(x, wave=wave, levels=levels, mode=mode)
@@ -271,12 +283,7 @@ def _as_coeffs(x, name: str, wave: str, levels: int, mode: str) -> WaveletCoeffs
 
 def _as_target(gt, wave: str, levels: int, mode: str, correlation: bool) -> WaveletTarget:
     if isinstance(gt, WaveletTarget):
-        if (gt.wave, gt.levels, gt.mode, gt.correlation) != (wave, levels, mode, correlation):
-            raise ValueError(
-                f"the cached WaveletTarget was prepared with wave={gt.wave}, levels={gt.levels}, mode={gt.mode}, "
-                f"correlation={gt.correlation}, but the loss uses wave={wave}, levels={levels}, mode={mode}, "
-                f"correlation={correlation}: prepare the target with the loss's own settings"
-            )
+        _check_target_settings(gt, wave, levels, mode, correlation)
         return gt
     if isinstance(gt, WaveletCoeffs):
         raise TypeError("pass the gt as an image [B, C, H, W] or a WaveletTarget (from prepare_target), not coeffs")
@@ -340,6 +347,7 @@ def kc_loss(
     if gt is None:
         raise ValueError("the supervised kc_loss needs gt (an image or a WaveletTarget); or pass supervised=False")
     if isinstance(gt, WaveletTarget):
+        _check_target_settings(gt, wave, levels, mode, gt.correlation)
         k_gt, spread_gt = gt.kurtosis, gt.spread
     else:
         gt_c = _as_coeffs(gt, "gt", wave, levels, mode).detach()
@@ -377,8 +385,7 @@ def cbc_loss(
     if gt is None:
         raise ValueError("the supervised cbc_loss needs gt (an image or a WaveletTarget); or pass supervised=False")
     if isinstance(gt, WaveletTarget):
-        if gt.correlation != correlation:
-            raise ValueError(f"the WaveletTarget holds L_cov with correlation={gt.correlation}, not {correlation}")
+        _check_target_settings(gt, wave, levels, mode, correlation)
         l_gt = gt.l_cov
     else:
         l_gt = covariance_penalty(_as_coeffs(gt, "gt", wave, levels, mode).detach(), correlation)
@@ -414,7 +421,7 @@ class FrequencyLoss(nn.Module):
             raise ValueError(f"unknown mode '{mode}': use one of {MODES}")
         level_weights(0, weighting)
         for name, weight in (("wavelet_weight", wavelet_weight), ("kc_weight", kc_weight), ("cbc_weight", cbc_weight)):
-            if not weight >= 0:
+            if not (math.isfinite(weight) and weight >= 0):
                 raise ValueError(f"{name} must be a finite non-negative number, got {weight}")
         dwt2(torch.zeros(1, 1, 1, 1), wave=wave, levels=0)  # validates the wavelet name now, not at step 1
         self.wavelet_weight = float(wavelet_weight)
