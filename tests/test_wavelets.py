@@ -32,6 +32,15 @@ def test_max_level_rule_matches_pywt(length, filter_len):
     assert dwt_max_level(length, filter_len) == pywt.dwt_max_level(length, filter_len)
 
 
+@pytest.mark.parametrize("mode", MODES)
+def test_coeff_length_matches_pywt(mode):
+    from kc_splatfacto.losses.wavelets import coeff_length
+
+    for length in (1, 2, 5, 6, 7, 64, 255, 257):
+        for flen in (2, 6, 12):
+            assert coeff_length(length, flen, mode) == pywt.dwt_coeff_len(length, flen, mode)
+
+
 def _pywt_reference(images: np.ndarray, wave: str, mode: str, levels: int):
     """pywt.wavedec2 per image/channel, rearranged into (approx [B,C,h,w], details finest first [B,C,3,h,w])."""
     batch, channels = images.shape[:2]

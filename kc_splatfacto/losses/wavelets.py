@@ -4,12 +4,14 @@
 orientations in PyWavelets' order (cH, cV, cD) = the paper's (LH, HL, HH). The coefficients equal
 `pywt.wavedec2(x, wave, mode=mode, level=levels)` (reversed) for the modes symmetric, reflect, zero, periodization.
 
-Implementation: every boundary mode is an index map per axis (periodization also duplicates the last sample of an
-odd-length axis, as PyWavelets does), so a level is one gather of the padded image (zero mode: one `F.pad`) followed
-by ONE strided `conv2d` that applies the four separable 2D filters (lo/hi along H times lo/hi along W) at once. Both
-are plain autograd ops, so gradients are exact in every mode (float64 gradcheck passes), and the transform runs
-unchanged on any device. PyWavelets is never imported here: the filter taps come from Daubechies' spectral
-factorization (`daubechies_filters`), checked against `pywt.Wavelet` in the tests.
+Implementation: a level is one extension of the image on both axes followed by ONE strided `conv2d` that applies
+the four separable 2D filters (lo/hi along H times lo/hi along W) at once. The extensions are `F.pad` (zero, reflect,
+circular for periodization, which first repeats the last sample of an odd axis as PyWavelets does) or, for
+half-sample symmetric, slices and flips with a small autograd Function whose backward folds the border gradients
+back; axes shorter than the extension fall back to an exact index-map gather. Gradients are exact in every mode
+(float64 gradcheck passes) and the transform runs unchanged on any device. PyWavelets is never imported here: the
+filter taps come from Daubechies' spectral factorization (`daubechies_filters`), checked against `pywt.Wavelet` in
+the tests. docs/losses.md has the measurements behind these choices.
 """
 
 from __future__ import annotations
@@ -27,8 +29,8 @@ from torch import Tensor
 
 # Boundary modes, named as in PyWavelets.
 MODES = ("symmetric", "reflect", "zero", "periodization")
-# Daubechies orders this module can build (pywt ships db1..db38; spectral factorization in float64 is accurate to
-# ~1e-15 up to db10, then root finding degrades, so larger orders are refused rather than silently inexact).
+# Daubechies orders this module can build (pywt ships db1..db38; spectral factorization in float64 matches its taps
+# to ~1e-14 up to db7 and ~1e-12 up to db10, then root finding degrades: larger orders are refused, not inexact).
 MAX_DB_ORDER = 10
 
 
