@@ -47,8 +47,10 @@ POWER_FLOOR = 1e-30
 
 
 def _check_finite(x: Tensor, name: str) -> None:
-    # one reduction pass: a NaN/Inf anywhere makes the sum non-finite (only then is the exact check needed)
-    if not bool(torch.isfinite(x.sum())) and not bool(torch.isfinite(x).all()):
+    # one reduction pass: a NaN/Inf anywhere makes the sum non-finite (only then is the exact check needed); the sum
+    # is float32 at least, so a large half-precision image does not overflow into the slow path
+    total = x.sum(dtype=torch.float32) if x.dtype in (torch.float16, torch.bfloat16) else x.sum()
+    if not bool(torch.isfinite(total)) and not bool(torch.isfinite(x).all()):
         raise ValueError(
             f"'{name}' contains NaN or Inf values; the frequency losses need finite images "
             f"(check the renderer output / the loaded image for '{name}')"
