@@ -194,12 +194,16 @@ def rasterization(
     if resolved == "gsplat":
         import gsplat
 
-        return gsplat.rasterization(
+        render_colors, render_alphas, meta = gsplat.rasterization(
             means, quats, scales, opacities, colors, viewmats, Ks, width, height,
             near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, radius_clip=radius_clip, sh_degree=sh_degree,
             tile_size=tile_size, backgrounds=backgrounds, render_mode=render_mode, rasterize_mode=rasterize_mode,
             absgrad=absgrad, packed=False,
         )
+        if meta["means2d"].requires_grad:
+            meta["means2d"].retain_grad()
+        meta["backend"] = resolved
+        return render_colors, render_alphas, meta
 
     _check_inputs(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds, render_mode,
