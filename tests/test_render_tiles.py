@@ -7,7 +7,22 @@ import numpy as np
 import pytest
 import torch
 
+from kc_splatfacto.render import tiles
 from kc_splatfacto.render.tiles import isect_offset_encode, isect_tiles, tile_grid
+
+
+@pytest.fixture(params=["counting_sort", "key_sort"])
+def binning(request, monkeypatch):
+    """Both binning routes: numba counting sort (CPU default) and the vectorized key sort (other devices)."""
+    if request.param == "key_sort":
+        monkeypatch.setattr(
+            tiles,
+            "_bin_counting_sort",
+            lambda depths, visible, tmin, tmax, counts, tw, th: tiles._bin_sort_keys(
+                depths, tmin, (tmax - tmin).clamp(min=0), counts, tw, th, True
+            ),
+        )
+    return request.param
 
 
 def bruteforce_isects(means2d, radii, depths, tile_size, tile_width, tile_height):
@@ -46,7 +61,7 @@ def random_bins(n_cameras, n, width, height, seed, tile_size=16):
 
 
 @pytest.mark.parametrize("width,height,tile_size", [(100, 75, 16), (64, 64, 16), (37, 50, 8), (1, 1, 16)])
-def test_isect_tiles_equal_bruteforce(width, height, tile_size):
+def test_isect_tiles_equal_bruteforce(width, height, tile_size, binning):
     n_cameras, n = 3, 80
     means2d, radii, depths = random_bins(n_cameras, n, width, height, seed=width, tile_size=tile_size)
     tile_width, tile_height = tile_grid(width, height, tile_size)
@@ -77,7 +92,7 @@ def test_isect_tiles_equal_bruteforce(width, height, tile_size):
             assert offsets[c, t // tile_width, t % tile_width] == first
 
 
-def test_empty_intersections_give_zero_offsets():
+def test_empty_intersections_give_zero_offsets(binning):
     means2d = torch.zeros(2, 3, 2)
     radii = torch.zeros(2, 3, 2, dtype=torch.int32)
     depths = torch.ones(2, 3)
