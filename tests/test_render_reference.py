@@ -276,6 +276,29 @@ def test_auto_backend_picks_cpu_for_cpu_tensors():
     torch.testing.assert_close(auto_a, ref_a, atol=1e-5, rtol=0)
 
 
+def test_backend_resolution_with_and_without_gsplat(monkeypatch):
+    import sys
+    import types
+
+    from kc_splatfacto.render import resolve_backend
+
+    cuda, cpu = torch.device("cuda"), torch.device("cpu")
+    monkeypatch.setitem(sys.modules, "gsplat", types.ModuleType("gsplat"))  # an importable gsplat
+    assert resolve_backend("auto", cuda) == "gsplat"
+    assert resolve_backend("gsplat", cuda) == "gsplat"
+    assert resolve_backend("auto", cpu) == "cpu"
+    with pytest.raises(RuntimeError, match="needs CUDA tensors"):
+        resolve_backend("gsplat", cpu)
+    with pytest.raises(ValueError, match="needs CPU tensors"):
+        resolve_backend("cpu", cuda)
+    monkeypatch.setitem(sys.modules, "gsplat", None)  # import gsplat now raises ImportError
+    with pytest.raises(RuntimeError, match="pip install gsplat"):
+        resolve_backend("gsplat", cuda)
+    with pytest.raises(RuntimeError, match="gsplat is not installed"):
+        resolve_backend("auto", cuda)
+    assert resolve_backend("auto", cpu) == "cpu"
+
+
 def test_backend_errors_are_clear():
     args = _scene_for_modes()
     with pytest.raises(ValueError, match="backend must be one of"):

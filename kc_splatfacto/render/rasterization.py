@@ -48,14 +48,21 @@ def resolve_backend(backend: str, device: torch.device) -> str:
     """The concrete backend for ``backend`` and tensors on ``device``; raises on impossible requests.
 
     Raises:
-        ValueError: unknown backend, or "cpu"/"torch" asked with CUDA tensors... see messages.
-        RuntimeError: "gsplat" asked without gsplat or without CUDA tensors (never a silent fallback).
+        ValueError: unknown backend, or "cpu" asked with non-CPU tensors.
+        RuntimeError: "gsplat" asked without gsplat or without CUDA tensors, or "auto" with CUDA tensors and no
+            gsplat (never a silent fallback).
+        ImportError: "cpu" asked while the compiled module cannot be imported.
     """
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if backend == "auto":
-        if device.type == "cuda" and _gsplat_available():
-            return "gsplat"
+        if device.type == "cuda":
+            if _gsplat_available():
+                return "gsplat"
+            raise RuntimeError(
+                "rasterization(backend='auto') got CUDA tensors but gsplat is not installed: install gsplat==1.5.3, "
+                "move the tensors to the CPU (compiled cpu backend), or pass backend='torch' (slow reference)"
+            )
         if _cpu_rasterizer() is not None:
             return "cpu"
         warnings.warn(
