@@ -3,7 +3,7 @@
 - ``"torch"``: the reference (:func:`rasterize_to_pixels_torch`), differentiable by autograd; slow.
 - ``"cpu"``: the compiled per-pixel kernels (``rasterize_cpu.rasterize_to_pixels_cpu``), same projection/SH/tiles.
 - ``"gsplat"``: ``gsplat.rasterization`` itself; needs gsplat installed and CUDA tensors (a clear error otherwise).
-- ``"auto"``: gsplat for CUDA tensors when gsplat imports, else cpu.
+- ``"auto"``: gsplat for CUDA tensors (an error when gsplat is missing), cpu for CPU tensors.
 """
 
 from __future__ import annotations
