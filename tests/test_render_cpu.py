@@ -248,6 +248,10 @@ def test_packed_extent_is_conservative_and_tight():
                 assert (alpha < ALPHA_THRESHOLD).all()
             else:
                 assert (alpha > ALPHA_THRESHOLD).all()
+    # the per-pixel pre-test: at sigma = sigma_cut the float32 alpha is below the threshold, a little inside above
+    sigma_cut = torch.from_numpy(packed[:, 8].copy())
+    assert (opacities * torch.exp(-sigma_cut) < ALPHA_THRESHOLD).all()
+    assert (opacities * torch.exp(-(sigma_cut - 0.01)) > ALPHA_THRESHOLD).all()
 
 
 def scene_3d(n, n_cameras, seed, sh_degree):

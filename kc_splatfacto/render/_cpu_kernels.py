@@ -4,8 +4,9 @@ Layout shared by the kernels (all arrays C-contiguous numpy):
 
 - ``packed [M, PACK_HEAD + D] float32``: one row per intersection ``m`` (tile-sorted order), the Gaussian
   ``flatten_ids[m]`` gathered once so that a tile streams through contiguous memory:
-  ``x, y, conic_a, conic_b, conic_c, opacity, extent_x, extent_y, color[0..D)``. ``extent_*`` is a conservative
-  half-size (px) of the ellipse where ``alpha >= alpha_threshold``: a tile only visits pixels inside it.
+  ``x, y, conic_a, conic_b, conic_c, opacity, extent_x, extent_y, sigma_cut, color[0..D)``. ``extent_*`` is a
+  conservative half-size (px) of the ellipse where ``alpha >= alpha_threshold``: a tile only visits pixels inside
+  it; a pixel with ``sigma > sigma_cut`` has ``alpha < alpha_threshold`` and is skipped before the exp.
 - ``tile_offsets [C * tile_h * tile_w] int32``: first intersection of each tile (gsplat's ``isect_offsets``
   flattened); the last tile ends at ``M``.
 - Per-pixel forward state ``T_final [C, H, W] float32`` (transmittance after the last contributor) and
@@ -26,8 +27,11 @@ import math
 import numpy as np
 from numba import njit, prange
 
-# packed row: x, y, conic a, b, c, opacity, extent x, extent y, then D colour channels
-PACK_HEAD = 8
+# packed row: x, y, conic a, b, c, opacity, extent x, extent y, sigma cut, then D colour channels
+PACK_HEAD = 9
+# Pre-test margin on sigma: beyond log(opacity / threshold) + margin, alpha < threshold whatever expf rounds to,
+# so such a pixel is skipped without calling exp (exactly as the full test would skip it).
+SIGMA_CUT_MARGIN = 1e-3
 # gradient row: v_x, v_y, v_conic a, b, c, v_opacity, |v_x|, |v_y| summed per pixel (absgrad), then D v_colors
 GRAD_HEAD = 8
 
@@ -66,15 +70,18 @@ def pack_isects(means2d, conics, opacities, colors, flatten_ids, alpha_threshold
             # opacity * exp(-sigma) <= opacity < threshold for every sigma >= 0: no pixel passes
             ex = -1.0
             ey = -1.0
-        elif a64 > 0.0 and c64 > 0.0 and det > 0.0 and math.isfinite(det):
-            sigma_max = math.log(np.float64(o) / np.float64(alpha_threshold)) + 1e-3
-            ex = math.sqrt(2.0 * sigma_max * c64 / det) * 1.001 + 1e-2
-            ey = math.sqrt(2.0 * sigma_max * a64 / det) * 1.001 + 1e-2
+            sigma_cut = -1.0
         else:
-            ex = np.inf
-            ey = np.inf
+            sigma_cut = math.log(np.float64(o) / np.float64(alpha_threshold)) + SIGMA_CUT_MARGIN
+            if a64 > 0.0 and c64 > 0.0 and det > 0.0 and math.isfinite(det):
+                ex = math.sqrt(2.0 * sigma_cut * c64 / det) * 1.001 + 1e-2
+                ey = math.sqrt(2.0 * sigma_cut * a64 / det) * 1.001 + 1e-2
+            else:
+                ex = np.inf
+                ey = np.inf
         packed[m, 6] = ex
         packed[m, 7] = ey
+        packed[m, 8] = sigma_cut
         for k in range(n_channels):
             packed[m, PACK_HEAD + k] = colors[g, k]
 
@@ -88,6 +95,43 @@ def _pixel_range(center, extent, pixel_offset, lo, hi):
         return lo, hi
     first = math.ceil(np.float64(center) - np.float64(extent) - np.float64(pixel_offset))
     last = math.floor(np.float64(center) + np.float64(extent) - np.float64(pixel_offset))
+    if first < lo:
+        first = lo
+    if last > hi - 1:
+        last = hi - 1
+    if last < first:
+        return lo, lo
+    return int(first), int(last) + 1
+
+
+@njit(inline="always")
+def _ellipse_rows(ca, cb, cc, sigma_cut):
+    """Per-Gaussian coefficients of the row spans of the ellipse ``sigma <= sigma_cut`` (float64).
+
+    With ``dx = x - px`` the row at offset ``dy`` holds ``dx`` in ``-(b/a) dy +- sqrt(2 cut / a - det / a^2 dy^2)``.
+    Returns (bounded, 2 cut / a, det / a^2, b / a); ``bounded`` is False for a conic that is not positive definite.
+    """
+    a = np.float64(ca)
+    b = np.float64(cb)
+    det = a * np.float64(cc) - b * b
+    if a > 0.0 and det > 0.0 and math.isfinite(det) and sigma_cut >= 0.0:
+        return True, 2.0 * np.float64(sigma_cut) / a, det / (a * a), b / a
+    return False, 0.0, 0.0, 0.0
+
+
+@njit(inline="always")
+def _row_range(bounded, k_cut, k_det, k_b, gx, dy, pixel_offset, lo, hi):
+    """Pixels of ``[lo, hi)`` in one row whose centre may have ``sigma <= sigma_cut`` (conservative): (first, end)."""
+    if not bounded:
+        return lo, hi
+    d = np.float64(dy)
+    half_sq = k_cut - k_det * d * d
+    if half_sq < 0.0:
+        return lo, lo
+    half_w = math.sqrt(half_sq) * 1.001 + 1e-2
+    center = np.float64(gx) + k_b * d - np.float64(pixel_offset)
+    first = math.ceil(center - half_w)
+    last = math.floor(center + half_w)
     if first < lo:
         first = lo
     if last > hi - 1:
@@ -115,8 +159,10 @@ def rasterize_fwd(
     render_colors,
     T_final,
     last_ids,
+    n_contrib,
 ):
-    """Front-to-back compositing, one tile per task (fills render_colors [C,H,W,D], T_final, last_ids).
+    """Front-to-back compositing, one tile per task (fills render_colors [C,H,W,D], T_final, last_ids and
+    n_contrib [C,H,W] int32, the number of Gaussians composited into each pixel).
 
     backgrounds [C,D] float32 (zeros when the caller has none: ``T * 0`` adds nothing).
     """
@@ -143,6 +189,7 @@ def rasterize_fwd(
         T = np.ones(n_pix, dtype=np.float32)
         acc = np.zeros((n_pix, n_channels), dtype=np.float64)
         last = np.full(n_pix, -1, dtype=np.int32)
+        count = np.zeros(n_pix, dtype=np.int32)
         done = np.zeros(n_pix, dtype=np.bool_)
         n_done = 0
         for m in range(start, end):
@@ -154,17 +201,22 @@ def rasterize_fwd(
             cb = packed[m, 3]
             cc = packed[m, 4]
             op = packed[m, 5]
+            sigma_cut = packed[m, 8]
             j_first, j_end = _pixel_range(gx, packed[m, 6], pixel_offset, x0, x1)
             i_first, i_end = _pixel_range(gy, packed[m, 7], pixel_offset, y0, y1)
+            bounded, k_cut, k_det, k_b = _ellipse_rows(ca, cb, cc, sigma_cut)
             for i in range(i_first, i_end):
                 dy = gy - (_F32(i) + pixel_offset)
+                row_first, row_end = _row_range(bounded, k_cut, k_det, k_b, gx, dy, pixel_offset, j_first, j_end)
                 row = (i - y0) * span_x - x0
-                for j in range(j_first, j_end):
+                for j in range(row_first, row_end):
                     p = row + j
                     if done[p]:
                         continue
                     dx = gx - (_F32(j) + pixel_offset)
                     sigma = half * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                    if sigma > sigma_cut:
+                        continue
                     alpha = min(max_alpha, op * math.exp(-sigma))
                     if sigma < 0 or alpha < alpha_threshold:
                         continue
@@ -178,6 +230,7 @@ def rasterize_fwd(
                     for k in range(n_channels):
                         acc[p, k] += packed[m, PACK_HEAD + k] * vis
                     last[p] = m
+                    count[p] += 1
                     T[p] = next_T
         for i in range(y0, y1):
             for j in range(x0, x1):
@@ -185,6 +238,7 @@ def rasterize_fwd(
                 t = T[p]
                 T_final[cam, i, j] = t
                 last_ids[cam, i, j] = last[p]
+                n_contrib[cam, i, j] = count[p]
                 for k in range(n_channels):
                     render_colors[cam, i, j, k] = acc[p, k] + t * backgrounds[cam, k]
 
@@ -270,8 +324,10 @@ def rasterize_bwd(
             cb = packed[m, 3]
             cc = packed[m, 4]
             op = packed[m, 5]
+            sigma_cut = packed[m, 8]
             j_first, j_end = _pixel_range(gx, packed[m, 6], pixel_offset, x0, x1)
             i_first, i_end = _pixel_range(gy, packed[m, 7], pixel_offset, y0, y1)
+            bounded, k_cut, k_det, k_b = _ellipse_rows(ca, cb, cc, sigma_cut)
             for k in range(n_channels):
                 v_rgb[k] = 0.0
             v_ca = 0.0
@@ -284,13 +340,16 @@ def rasterize_bwd(
             v_op = 0.0
             for i in range(i_first, i_end):
                 dy = gy - (_F32(i) + pixel_offset)
+                row_first, row_end = _row_range(bounded, k_cut, k_det, k_b, gx, dy, pixel_offset, j_first, j_end)
                 row = (i - y0) * span_x - x0
-                for j in range(j_first, j_end):
+                for j in range(row_first, row_end):
                     p = row + j
                     if m > last[p]:
                         continue
                     dx = gx - (_F32(j) + pixel_offset)
                     sigma = half * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                    if sigma > sigma_cut:
+                        continue
                     vis = math.exp(-sigma)
                     alpha = min(max_alpha, op * vis)
                     if sigma < 0 or alpha < alpha_threshold:
