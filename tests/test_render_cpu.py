@@ -109,18 +109,21 @@ def test_saturated_pixels_stop_before_transmittance_threshold():
         assert_grad_close(actual, expected, name)
 
 
-def test_indefinite_conic_is_tested_at_every_pixel():
-    """A conic that is not positive definite has no bounded ellipse: the fast path must not cull its pixels."""
-    means2d = torch.tensor([[[10.0, 9.0], [14.0, 12.0]]])
-    conics = torch.tensor([[[0.05, 0.2, 0.04], [0.3, 0.0, 0.2]]])  # first: det < 0, sigma < 0 along a diagonal
-    colors = torch.tensor([[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]])
-    opacities = torch.tensor([[0.9, 0.7]])
-    depths = torch.tensor([[1.0, 2.0]])
-    radii = torch.full((1, 2, 2), 40, dtype=torch.int32)
+def test_indefinite_and_extreme_conics_are_tested_at_every_pixel():
+    """A conic that is not positive definite has no bounded ellipse, and a nearly flat one has an extent beyond any
+    integer (1e19 px): the fast path must cull neither's pixels."""
+    means2d = torch.tensor([[[10.0, 9.0], [14.0, 12.0], [20.0, 6.0]]])
+    # first: det < 0, sigma < 0 along a diagonal; third: a = 1e-38, a horizontal band across the whole image
+    conics = torch.tensor([[[0.05, 0.2, 0.04], [0.3, 0.0, 0.2], [1e-38, 0.0, 0.5]]])
+    colors = torch.tensor([[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]])
+    opacities = torch.tensor([[0.9, 0.7, 0.8]])
+    depths = torch.tensor([[1.0, 2.0, 3.0]])
+    radii = torch.full((1, 3, 2), 40, dtype=torch.int32)
     inputs = (means2d, conics, colors, opacities) + intersections(means2d, radii, depths, 32, 24)
     (fast_out, fast_grads, _), (ref_out, ref_grads, _) = run_both(inputs, 32, 24)
     # the indefinite Gaussian contributes far from its centre where sigma is small and positive
     assert (fast_out[0][0, :, :, 0] > 0.01).sum() > 50
+    assert (fast_out[0][0, 6, :, 2] > 0.1).all()  # the band reaches both image borders
     torch.testing.assert_close(fast_out[0], ref_out[0], rtol=0, atol=1e-5)
     for name, actual, expected in zip(["means2d", "conics", "colors", "opacities"], fast_grads, ref_grads):
         assert_grad_close(actual, expected, name)

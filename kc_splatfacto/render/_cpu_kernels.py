@@ -88,18 +88,18 @@ def pack_isects(means2d, conics, opacities, colors, flatten_ids, alpha_threshold
 
 @njit(inline="always")
 def _pixel_range(center, extent, pixel_offset, lo, hi):
-    """Pixels ``p`` in ``[lo, hi)`` whose centre ``p + pixel_offset`` is within ``extent`` of ``center``: (first, end)."""
+    """Pixels ``p`` in ``[lo, hi)`` whose centre ``p + pixel_offset`` is within ``extent`` of ``center``: (first, end).
+
+    Clamped in float64 before the integer conversion, so huge or infinite extents (elongated or degenerate
+    Gaussians) give the whole range instead of an overflowed integer.
+    """
     if not (extent >= 0.0):
         return lo, lo
-    if extent == np.inf or not math.isfinite(center):
+    if not math.isfinite(center):
         return lo, hi
-    first = math.ceil(np.float64(center) - np.float64(extent) - np.float64(pixel_offset))
-    last = math.floor(np.float64(center) + np.float64(extent) - np.float64(pixel_offset))
-    if first < lo:
-        first = lo
-    if last > hi - 1:
-        last = hi - 1
-    if last < first:
+    first = max(np.ceil(np.float64(center) - np.float64(extent) - np.float64(pixel_offset)), np.float64(lo))
+    last = min(np.floor(np.float64(center) + np.float64(extent) - np.float64(pixel_offset)), np.float64(hi - 1))
+    if not (last >= first):
         return lo, lo
     return int(first), int(last) + 1
 
@@ -126,17 +126,15 @@ def _row_range(bounded, k_cut, k_det, k_b, gx, dy, pixel_offset, lo, hi):
         return lo, hi
     d = np.float64(dy)
     half_sq = k_cut - k_det * d * d
-    if half_sq < 0.0:
+    if not (half_sq >= 0.0):
         return lo, lo
     half_w = math.sqrt(half_sq) * 1.001 + 1e-2
     center = np.float64(gx) + k_b * d - np.float64(pixel_offset)
-    first = math.ceil(center - half_w)
-    last = math.floor(center + half_w)
-    if first < lo:
-        first = lo
-    if last > hi - 1:
-        last = hi - 1
-    if last < first:
+    if not (math.isfinite(half_w) and math.isfinite(center)):
+        return lo, hi
+    first = max(np.ceil(center - half_w), np.float64(lo))
+    last = min(np.floor(center + half_w), np.float64(hi - 1))
+    if not (last >= first):
         return lo, lo
     return int(first), int(last) + 1
 
