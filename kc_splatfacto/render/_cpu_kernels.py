@@ -640,6 +640,7 @@ def rasterize_bwd_lanes(
         scratch = np.empty((5, LANES), dtype=np.float32)
         # per-lane sums over the rows of one Gaussian: v_x, v_y, v_a, v_b, v_c, v_opacity, |v_x|, |v_y|, v_rgb
         sums = np.empty((GRAD_HEAD + n_channels, LANES), dtype=np.float32)
+        pair_sums = np.empty(LANES // 2, dtype=np.float64)
         for m in range(min(tile_last, end - 1), start - 1, -1):
             gx = packed[m, 0]
             gy = packed[m, 1]
@@ -703,8 +704,10 @@ def rasterize_bwd_lanes(
                     sums[5, jj] += vis * v_alpha if unclamped else zero
                     sums[6, jj] += abs(g_x)
                     sums[7, jj] += abs(g_y)
+            # pairwise over the lanes in float64, a fixed tree: element-wise (vectorizable) and deterministic
             for q in range(GRAD_HEAD + n_channels):
-                total = 0.0
-                for jj in range(LANES):
-                    total += np.float64(sums[q, jj])
-                isect_grads[m, q] = total
+                for jj in range(LANES // 2):
+                    pair_sums[jj] = np.float64(sums[q, jj]) + np.float64(sums[q, jj + LANES // 2])
+                for jj in range(LANES // 4):
+                    pair_sums[jj] = pair_sums[jj] + pair_sums[jj + LANES // 4]
+                isect_grads[m, q] = (pair_sums[0] + pair_sums[2]) + (pair_sums[1] + pair_sums[3])
