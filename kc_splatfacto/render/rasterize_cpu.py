@@ -7,8 +7,10 @@ skip ``sigma < 0`` and ``alpha < ALPHA_THRESHOLD``, stop before the transmittanc
 background blended with the final transmittance; backward in reverse order from each pixel's last contributor.
 
 Parallel over (camera, tile); each intersection's gradient is written by the one tile that owns it and then
-reduced to Gaussians in a fixed order, so results do not depend on the thread count. Compute is float32 like
-gsplat; transmittance and gradient sums of the backward pass are float64.
+reduced to Gaussians in a fixed order, so results do not depend on the thread count. 16 px tiles run the
+vectorized 16-lane kernels (float32 like gsplat, per-intersection gradient totals and the reduction to Gaussians
+in float64); other tile sizes run scalar kernels (float64 transmittance and gradient sums in backward).
+See ``docs/rasterizer.md`` (Fast CPU path and benchmark).
 """
 
 from __future__ import annotations
