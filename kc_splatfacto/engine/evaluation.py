@@ -1,6 +1,6 @@
 """Evaluation of a split: PSNR and SSIM per image and their means; LPIPS only where its weights exist offline.
 
-SSIM convention: kornia's Gaussian-window SSIM (window 11, sigma 1.5, 'same' padding), averaged over the image, as
+SSIM convention: kornia's Gaussian-window SSIM (window 11, sigma 1.5, reflect 'same' padding), averaged over the image, as
 ``kc_splatfacto.losses.photometric.ssim`` computes it (nerfstudio's torchmetrics SSIM uses 'valid' windows instead; the
 two differ slightly near borders).
 """
@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-SSIM_CONVENTION = "kornia ssim, gaussian window 11, sigma 1.5, same padding, image mean"
+SSIM_CONVENTION = "kornia ssim, gaussian window 11, sigma 1.5, reflect same padding, image mean"
 
 
 def lpips_metric() -> tuple[Any | None, str | None]:

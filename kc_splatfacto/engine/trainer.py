@@ -39,6 +39,9 @@ GRAD_OVERFLOW = 1e18
 """a gradient this large would overflow Adam's squared-gradient average in float32 (1e36 < 3.4e38 just fits)"""
 PHASES = ("render", "losses", "backward", "optimizer", "density_control")
 
+# a skipped (non-finite) step still advances the schedules, which torch reports as a misuse; it is deliberate here
+warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step\\(\\)` before `optimizer.step\\(\\)`")
+
 
 class TrainingDivergedError(RuntimeError):
     """Too many consecutive non-finite steps."""
@@ -278,7 +281,7 @@ class Trainer:
             self._bad_step(step + 1, bad)
             return {}
         self._bad_in_a_row = 0
-        result = {k: float(v) for k, v in loss_dict.items()}
+        result = {k: float(v.detach()) for k, v in loss_dict.items()}
         result["loss"] = sum(result.values())
         self._last_outputs, self._last_batch = outputs, {"image": image, "image_idx": index}
         return result
@@ -296,8 +299,7 @@ class Trainer:
         bar = ProgressBar(cfg.max_num_iterations, self.start_step, enabled=cfg.logging.progress_bar)
         step = self.start_step
         try:
-            with warnings.catch_warnings():
-                warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step()`")
+            if True:  # (no warnings.catch_warnings here: mutating filters re-enables once-only warnings every step)
                 if step == 0 and 0 in cfg.eval_at_steps:
                     self.evaluate(0)
                 losses: dict[str, float] = {}
