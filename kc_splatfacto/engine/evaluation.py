@@ -38,6 +38,12 @@ def lpips_metric() -> tuple[Any | None, str | None]:
     return compute, None
 
 
+def _image_name(dataset, index: int) -> str | None:
+    outputs = getattr(dataset, "outputs", None)
+    names = getattr(outputs, "image_filenames", None) or getattr(dataset, "image_filenames", None)
+    return str(names[index]) if names is not None else None
+
+
 def _mean_std(values: list[float]) -> tuple[float | None, float | None]:
     if not values:
         return None, None
@@ -76,7 +82,7 @@ def evaluate_split(model, dataset, *, with_lpips: bool = True) -> dict[str, Any]
                 raise ValueError(f"image {index}: render {tuple(pred.shape)} and ground truth {tuple(gt.shape)} differ")
             record = {
                 "index": index,
-                "image": str(dataset.image_filenames[index]) if hasattr(dataset, "image_filenames") else None,
+                "image": _image_name(dataset, index),
                 "psnr": float(psnr(pred, gt)),
                 "ssim": float(ssim(pred, gt)),
                 "lpips": float(lpips_fn(pred, gt)) if lpips_fn is not None else None,
