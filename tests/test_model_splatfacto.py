@@ -107,3 +107,28 @@ def test_metrics_and_logging_kurtosis(demo_train):
     logged = model.get_metrics_dict(out, batch, with_kurtosis=True)
     assert len(logged["kurtosis_render"]) == 9 and len(logged["kurtosis_gt"]) == 9
     assert all(np.isfinite(logged["kurtosis_gt"]))
+
+
+def test_evaluate_split_matches_numpy_psnr_and_kornia_ssim(demo_train):
+    from kornia.metrics import ssim as kornia_ssim
+
+    from kc_splatfacto.engine.evaluation import evaluate_split
+
+    model, dataset = make_model(demo_train)
+    model.train()  # evaluate_split switches to eval mode and back
+    result = evaluate_split(model, dataset)
+    assert model.training
+    assert result["num_images"] == len(dataset) == len(result["per_image"])
+    assert result["lpips"] is None and result["lpips_unavailable"]
+    model.eval()
+    psnrs, ssims = [], []
+    with torch.no_grad():
+        for i in range(len(dataset)):
+            pred = model.get_outputs(dataset.cameras[i])["rgb"]
+            mse = ((pred.double().numpy() - dataset.image_uint8(i).numpy() / 255.0) ** 2).mean()
+            psnrs.append(10 * np.log10(1 / mse))
+            ssims.append(float(kornia_ssim(pred.permute(2, 0, 1)[None], dataset.image_float(i).permute(2, 0, 1)[None],
+                                           11).mean()))
+    np.testing.assert_allclose([r["psnr"] for r in result["per_image"]], psnrs, atol=1e-3)
+    np.testing.assert_allclose([r["ssim"] for r in result["per_image"]], ssims, atol=1e-6)
+    assert np.isclose(result["psnr"], np.mean(psnrs), atol=1e-3) and np.isclose(result["psnr_std"], np.std(psnrs), atol=1e-3)

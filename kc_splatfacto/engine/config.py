@@ -153,6 +153,8 @@ class TrainerConfig:
         experiment = self.experiment_name
         if experiment is None:
             data = self.pipeline.datamanager.data
+            if data is None:  # a dataparser config given directly (kc-bench, tests): its scene folder
+                data = getattr(self.pipeline.datamanager.dataparser, "data", None)
             experiment = Path(str(data)).name if data is not None else "unnamed"
         timestamp = self.timestamp
         if timestamp == "{timestamp}":
