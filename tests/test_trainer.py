@@ -195,3 +195,25 @@ def test_steps_scale_compresses_every_schedule(tmp_path):
     assert model.get_downscale_factor() == 2
     model.step = 5000
     assert model.sh_degree_to_use() == 3 and model.get_downscale_factor() == 1
+
+
+def test_checkpoint_write_is_atomic_and_config_round_trips(tmp_path):
+    import threading
+
+    from kc_splatfacto.engine.checkpoints import save_checkpoint
+    from kc_splatfacto.engine.config import load_config, save_config
+
+    good = save_checkpoint(tmp_path, 5, {"step": 5})
+    with pytest.raises(Exception):
+        save_checkpoint(tmp_path, 6, {"step": 6, "unpicklable": threading.Lock()})
+    assert sorted(p.name for p in tmp_path.iterdir()) == [good.name]  # no partial step-6 file, no temp file left
+    config = tiny_demo_config("kc-splatfacto-fine", tmp_path, iterations=7)
+    config.eval_at_steps = (0, 3)
+    save_config(config, tmp_path / "config.yml")
+    loaded = load_config(tmp_path / "config.yml")
+    assert loaded == config and loaded.eval_at_steps == (0, 3)
+    (tmp_path / "other.yml").write_text("a: 1\n")
+    with pytest.raises(ValueError, match="TrainerConfig"):
+        load_config(tmp_path / "other.yml")
+    with pytest.raises(FileNotFoundError, match="config.yml of a run folder"):
+        load_config(tmp_path / "missing.yml")
