@@ -263,7 +263,7 @@ class Trainer:
             loss = torch.stack(list(loss_dict.values())).sum()
             t = self._tick("losses", t)
             if not bool(torch.isfinite(loss)):
-                bad = "non-finite loss (" + ", ".join(f"{k}={float(v):.4g}" for k, v in loss_dict.items()) + ")"
+                bad = "non-finite loss (" + ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in loss_dict.items()) + ")"
             else:
                 loss.backward()
                 t = self._tick("backward", t)
