@@ -1,24 +1,66 @@
-"""``kc-train METHOD --data SCENE``: train a registered method (the trainer arrives with the model issue)."""
+"""``kc-train METHOD --data SCENE [--dotted.config.fields VALUE ...]``: train a registered method.
+
+Methods come from the ``kc_splatfacto.method_configs`` entry points and ``KC_SPLATFACTO_METHOD_CONFIGS``
+(see :mod:`kc_splatfacto.registry`); ``kc-train --help`` lists them with their descriptions, and
+``kc-train METHOD --help`` every field of its config. Examples::
+
+    kc-train kc-splatfacto --data demo
+    kc-train kc-splatfacto --data ../shared/data/castle-P30 --pipeline.datamanager.downscale-factor 4 \\
+        --max-num-iterations 3000 --pipeline.model.steps-scale 0.1 --pipeline.model.kc-weight 1e-3
+    kc-train kc-splatfacto --data demo --load-dir outputs/demo/kc-splatfacto/<timestamp>/nerfstudio_models
+"""
 
 from __future__ import annotations
 
+import copy
 import sys
 
 from kc_splatfacto.registry import discover_methods
 
+DESCRIPTION = "Train a Gaussian-splatting method (KC-3DGS or Splatfacto) on a scene."
+
+
+def parse_config(argv: list[str]):
+    """The TrainerConfig a command line describes (tyro subcommands, one per discovered method)."""
+    import tyro
+
+    methods = discover_methods()
+    if not methods:
+        raise SystemExit("kc-train: no methods registered (is kc-splatfacto installed? `pip install -e .`)")
+    defaults = {name: copy.deepcopy(spec.config) for name, spec in methods.items()}
+    descriptions = {name: spec.description for name, spec in methods.items()}
+    union = tyro.conf.SuppressFixed[
+        tyro.conf.FlagConversionOff[tyro.extras.subcommand_type_from_defaults(defaults, descriptions)]
+    ]
+    return tyro.cli(union, args=argv, description=DESCRIPTION)
+
 
 def entrypoint(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    methods = discover_methods()
-    if not argv or argv[0] in ("-h", "--help"):
-        print("usage: kc-train METHOD --data SCENE [options]\n\nmethods:")
-        for name, spec in methods.items():
-            print(f"  {name:<28} {spec.description}")
-        if not methods:
-            print("  (none registered)")
-        return 0
-    print(f"kc-train: training is not wired up yet; registered methods: {', '.join(methods) or 'none'}", file=sys.stderr)
-    return 2
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if not argv:
+        argv = ["--help"]
+    config = parse_config(argv)
+
+    from kc_splatfacto.engine.trainer import Trainer, TrainingDivergedError
+    from kc_splatfacto.model.strategy import NoGaussiansLeftError
+
+    trainer = Trainer(config)
+    try:
+        run_dir = trainer.train()
+    except (TrainingDivergedError, NoGaussiansLeftError) as exc:
+        print(f"kc-train: {exc}", file=sys.stderr)
+        return 1
+    final = trainer.last_eval
+    if final is not None:
+        lpips = final.get("lpips")
+        lpips_text = f"{lpips:.4f}" if lpips is not None else f"n/a ({final.get('lpips_unavailable')})"
+        print(
+            f"final {final.get('split', 'test')} metrics at step {final['step']} over {final['num_images']} images: "
+            f"PSNR {final['psnr']:.3f} dB, SSIM {final['ssim']:.4f}, LPIPS {lpips_text}"
+        )
+    print(f"gaussians: {trainer.model.num_points}, training time: {trainer._train_s:.1f} s")
+    print(f"output folder: {run_dir}")
+    return 0
 
 
 if __name__ == "__main__":

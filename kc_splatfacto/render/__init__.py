@@ -1,1 +1,29 @@
 """Render layer: gsplat-compatible ``rasterization()`` with reference (torch), cpu (compiled) and gsplat backends."""
+
+from .projection import Projection, fully_fused_projection, persp_proj, quat_scale_to_covar, quat_to_rotmat, world_to_cam
+from .rasterization import BACKENDS, RENDER_MODES, rasterization, resolve_backend
+from .rasterize_torch import rasterize_to_pixels_torch
+from .sh import num_sh_bases, sh_bases, sh_to_rgb, spherical_harmonics
+from .tiles import TileIntersections, isect_offset_encode, isect_tiles, tile_grid
+
+__all__ = [
+    "BACKENDS",
+    "RENDER_MODES",
+    "Projection",
+    "TileIntersections",
+    "fully_fused_projection",
+    "isect_offset_encode",
+    "isect_tiles",
+    "num_sh_bases",
+    "persp_proj",
+    "quat_scale_to_covar",
+    "quat_to_rotmat",
+    "rasterization",
+    "rasterize_to_pixels_torch",
+    "resolve_backend",
+    "sh_bases",
+    "sh_to_rgb",
+    "spherical_harmonics",
+    "tile_grid",
+    "world_to_cam",
+]

@@ -1,0 +1,65 @@
+"""Loading a finished (or interrupted) run for evaluation, rendering and export: :func:`load_run`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, CHECKPOINT_PATTERN, find_checkpoint, load_checkpoint
+from kc_splatfacto.engine.config import TrainerConfig, load_config
+
+
+@dataclass
+class LoadedRun:
+    """A trained model with its datasets.
+
+    Attributes:
+        config: the run's TrainerConfig (as saved in config.yml).
+        model: the SplatfactoModel in eval mode, with the checkpoint's Gaussians.
+        step: the checkpoint's step (optimization steps completed).
+        run_dir: the run folder (holds config.yml, metrics.jsonl, nerfstudio_models/).
+        train_dataset, test_dataset: ImageDatasets of the train and eval splits.
+        checkpoint_path: the checkpoint file loaded.
+    """
+
+    config: TrainerConfig
+    model: Any
+    step: int
+    run_dir: Path
+    train_dataset: Any
+    test_dataset: Any
+    checkpoint_path: Path
+
+
+def load_run(config_path: Path | str, step: int | None = None, device: str | torch.device = "cpu") -> LoadedRun:
+    """Rebuild the model of a run from its ``config.yml`` and a checkpoint (the newest when ``step`` is None)."""
+    config_path = Path(config_path)
+    if config_path.is_dir():
+        config_path = config_path / "config.yml"
+    config = load_config(config_path)
+    run_dir = config_path.parent
+    checkpoint_path = find_checkpoint(run_dir / CHECKPOINT_DIR, step)
+    datamanager = config.pipeline.datamanager.setup(seed=config.machine.seed)
+    train_outputs = datamanager.train_outputs
+    model = config.pipeline.model.setup(
+        scene_scale=float(train_outputs.scene_scale),
+        num_train_data=len(datamanager.train_dataset),
+        seed_points=datamanager.seed_points(),
+    )
+    checkpoint = load_checkpoint(checkpoint_path, map_location="cpu")
+    model.load_gauss_params(checkpoint["model"])
+    model = model.to(device)
+    model.step = int(checkpoint["step"])
+    model.eval()
+    return LoadedRun(
+        config=config,
+        model=model,
+        step=int(CHECKPOINT_PATTERN.match(checkpoint_path.name).group(1)),
+        run_dir=run_dir,
+        train_dataset=datamanager.train_dataset,
+        test_dataset=datamanager.eval_dataset,
+        checkpoint_path=checkpoint_path,
+    )

@@ -1,0 +1,409 @@
+"""The Splatfacto-like model (nerfstudio 1.1.5's ``SplatfactoModel``) with KC-3DGS's wavelet-domain losses.
+
+``kc-splatfacto`` is this model with non-zero ``wavelet_weight``, ``kc_weight`` and ``cbc_weight``; with all three at
+zero it is the ``splatfacto`` baseline (loss 0.8 L1 + 0.2 (1 - SSIM)).
+
+``steps_scale`` multiplies every step-based schedule (warm-up, refinement period, opacity reset, stop of splitting and
+of screen-size culling, SH degree interval, resolution schedule): ``steps_scale=0.02`` plays Splatfacto's 30000-step
+schedule in 600 steps, for short CPU runs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import torch
+import torch.nn.functional as F
+
+from kc_splatfacto.data.outputs import Cameras
+from kc_splatfacto.model.gaussians import init_gaussian_params
+from kc_splatfacto.model.strategy import DefaultStrategy
+
+EVAL_BACKGROUND = (0.1490, 0.1647, 0.2157)
+"""Splatfacto's fixed background outside training when training uses random backgrounds (viser's grey)"""
+SCALE_REG_WEIGHT = 0.1
+"""PhysGaussian scale regularization weight in Splatfacto"""
+SCALE_REG_EVERY = 10
+"""Splatfacto evaluates the scale regularizer every 10th step only"""
+
+
+@dataclass
+class SplatfactoModelConfig:
+    """Splatfacto 1.1.5's defaults, plus KC-3DGS's frequency-domain losses (off by default)."""
+
+    warmup_length: int = 500
+    """period of steps where refinement is turned off"""
+    refine_every: int = 100
+    """period of steps where Gaussians are culled and densified"""
+    resolution_schedule: int = 3000
+    """training starts at 1/2^num_downscales resolution; every this many steps the resolution doubles"""
+    background_color: Literal["random", "black", "white"] = "random"
+    num_downscales: int = 2
+    cull_alpha_thresh: float = 0.1
+    """opacity below which Gaussians are culled"""
+    cull_scale_thresh: float = 0.5
+    """scale (x scene scale) above which Gaussians are culled"""
+    reset_alpha_every: int = 30
+    """every this many refinements, reset the opacities"""
+    densify_grad_thresh: float = 0.0008
+    """threshold of the (absolute) 2D mean gradient for densification"""
+    use_absgrad: bool = True
+    """use the absolute gradient (AbsGS) for densification"""
+    densify_size_thresh: float = 0.01
+    """below this size (x scene scale) Gaussians are duplicated, otherwise split"""
+    n_split_samples: int = 2
+    sh_degree_interval: int = 1000
+    """every this many steps turn on another SH degree"""
+    cull_screen_size: float = 0.15
+    """cull Gaussians larger than this fraction of the screen"""
+    split_screen_size: float = 0.05
+    """split Gaussians larger than this fraction of the screen"""
+    stop_screen_size_at: int = 4000
+    """stop culling/splitting by screen size at this step"""
+    random_init: bool = False
+    num_random: int = 50000
+    random_scale: float = 10.0
+    """side (x scene scale) of the cube random initial Gaussians fill"""
+    ssim_lambda: float = 0.2
+    stop_split_at: int = 15000
+    sh_degree: int = 3
+    use_scale_regularization: bool = False
+    max_gauss_ratio: float = 10.0
+    output_depth_during_training: bool = False
+    rasterize_mode: Literal["classic", "antialiased"] = "classic"
+    rasterization_backend: Literal["auto", "cpu", "torch", "gsplat"] = "auto"
+    """'auto': gsplat on CUDA when installed, the numba CPU rasterizer otherwise"""
+    steps_scale: float = 1.0
+    """multiplies every step-based schedule (see the module docstring)"""
+    wavelet_weight: float = 0.0
+    """weight of the wavelet L1 on detail subbands (KC-3DGS: 1e-3)"""
+    kc_weight: float = 0.0
+    """weight of the kurtosis-concentration loss (KC-3DGS: 1e-5)"""
+    cbc_weight: float = 0.0
+    """weight of the cross-band covariance loss (KC-3DGS: 1e-2)"""
+    wave: str = "db3"
+    wavelet_levels: int = 3
+    wavelet_mode: str = "symmetric"
+    wavelet_weighting: Literal["paper", "fine", "uniform"] = "paper"
+    """per-level weights of the wavelet L1: 'paper' 2^j (j=1 finest), 'fine' 2^(J-j+1), 'uniform' 1"""
+    kc_supervised: bool = True
+    cbc_supervised: bool = True
+    cbc_correlation: bool = False
+    """CBC on correlations instead of covariances (the 'scaled CBC' ablation)"""
+
+    def scaled(self, steps: int) -> int:
+        """A step count compressed by ``steps_scale`` (at least 1)."""
+        return max(1, int(round(steps * self.steps_scale)))
+
+    def setup(
+        self,
+        *,
+        scene_scale: float = 1.0,
+        num_train_data: int = 1,
+        seed_points: tuple[torch.Tensor, torch.Tensor | None] | None = None,
+    ) -> "SplatfactoModel":
+        return SplatfactoModel(self, scene_scale=scene_scale, num_train_data=num_train_data, seed_points=seed_points)
+
+
+def resize_image(image: torch.Tensor, d: int) -> torch.Tensor:
+    """[H, W, C] -> [H // d, W // d, C] by d x d box averaging (Splatfacto's ``resize_image``)."""
+    if d == 1:
+        return image
+    return F.avg_pool2d(image.permute(2, 0, 1)[None], kernel_size=d, stride=d)[0].permute(1, 2, 0)
+
+
+def rescale_cameras(camera: Cameras, d: int) -> Cameras:
+    """Cameras rendering 1/d of the resolution (intrinsics scaled, sizes floored as nerfstudio does)."""
+    if d == 1:
+        return camera
+    Ks = camera.Ks.clone()
+    Ks[:, :2, :] /= d
+    return Cameras(camera.viewmats, Ks, camera.widths // d, camera.heights // d)
+
+
+class SplatfactoModel(torch.nn.Module):
+    """Gaussians, density control and the losses of one scene.
+
+    Args:
+        config: the model config.
+        scene_scale: radius of the normalized scene (density-control thresholds multiply it).
+        num_train_data: number of training images (density control pauses that long after each opacity reset).
+        seed_points: ([M, 3] points, [M, 3] uint8 colours or None), or None for random initialization.
+    """
+
+    def __init__(
+        self,
+        config: SplatfactoModelConfig,
+        *,
+        scene_scale: float = 1.0,
+        num_train_data: int = 1,
+        seed_points: tuple[torch.Tensor, torch.Tensor | None] | None = None,
+    ):
+        super().__init__()
+        if config.steps_scale <= 0:
+            raise ValueError(f"steps_scale must be > 0, got {config.steps_scale}")
+        self.config = config
+        self.scene_scale = float(scene_scale)
+        self.num_train_data = int(num_train_data)
+        use_seed = seed_points is not None and not config.random_init
+        self.gauss_params = init_gaussian_params(
+            seed_points[0] if use_seed else None,
+            seed_points[1] if use_seed else None,
+            sh_degree=config.sh_degree,
+            scene_scale=self.scene_scale,
+            num_random=config.num_random,
+            random_scale=config.random_scale,
+        )
+        refine_every = config.scaled(config.refine_every)
+        reset_every = config.scaled(config.reset_alpha_every * config.refine_every)
+        self.strategy = DefaultStrategy(
+            prune_opa=config.cull_alpha_thresh,
+            grow_grad2d=config.densify_grad_thresh,
+            grow_scale3d=config.densify_size_thresh,
+            grow_scale2d=config.split_screen_size,
+            prune_scale3d=config.cull_scale_thresh,
+            prune_scale2d=config.cull_screen_size,
+            refine_scale2d_stop_iter=config.scaled(config.stop_screen_size_at),
+            refine_start_iter=config.scaled(config.warmup_length),
+            refine_stop_iter=config.scaled(config.stop_split_at),
+            reset_every=reset_every,
+            refine_every=refine_every,
+            # Splatfacto waits one pass over the training images after a reset; under heavy step compression that
+            # pass could outlast the reset period, so it is capped at half of it.
+            pause_refine_after_reset=min(self.num_train_data + refine_every, reset_every // 2),
+            absgrad=config.use_absgrad,
+            n_split_samples=config.n_split_samples,
+        )
+        self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene_scale)
+        self.step = 0
+        self.info: dict[str, Any] = {}
+        self.register_buffer("background_color", self._fixed_background(), persistent=False)
+        self._frequency_loss = None
+        self._wavelet_targets: dict[tuple[int, int], Any] = {}
+
+    # ----------------------------------------------------------------------------------------------- parameters
+    @property
+    def device(self) -> torch.device:
+        return self.gauss_params["means"].device
+
+    @property
+    def num_points(self) -> int:
+        return int(self.gauss_params["means"].shape[0])
+
+    @property
+    def means(self) -> torch.Tensor:
+        return self.gauss_params["means"]
+
+    @property
+    def scales(self) -> torch.Tensor:
+        return self.gauss_params["scales"]
+
+    @property
+    def quats(self) -> torch.Tensor:
+        return self.gauss_params["quats"]
+
+    @property
+    def opacities(self) -> torch.Tensor:
+        return self.gauss_params["opacities"]
+
+    @property
+    def features_dc(self) -> torch.Tensor:
+        return self.gauss_params["features_dc"]
+
+    @property
+    def features_rest(self) -> torch.Tensor:
+        return self.gauss_params["features_rest"]
+
+    def load_gauss_params(self, state: dict[str, torch.Tensor]) -> None:
+        """Replace the Gaussians by a checkpoint's (any N), keeping device and Parameter objects fresh."""
+        device = self.device
+        for name in list(self.gauss_params.keys()):
+            key = name if name in state else f"gauss_params.{name}"
+            if key not in state:
+                raise KeyError(f"checkpoint has no Gaussian parameter '{name}'")
+            self.gauss_params[name] = torch.nn.Parameter(state[key].detach().clone().to(device))
+
+    def _fixed_background(self) -> torch.Tensor:
+        colors = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0), "random": EVAL_BACKGROUND}
+        return torch.tensor(colors[self.config.background_color], dtype=torch.float32)
+
+    def _get_background_color(self) -> torch.Tensor:
+        if self.training and self.config.background_color == "random":
+            return torch.rand(3, device=self.device)
+        return self.background_color.to(self.device)
+
+    def sh_degree_to_use(self) -> int:
+        return min(self.step // self.config.scaled(self.config.sh_degree_interval), self.config.sh_degree)
+
+    def get_downscale_factor(self) -> int:
+        """Training resolution divisor: 2^num_downscales at the start, halved every ``resolution_schedule`` steps."""
+        if not self.training:
+            return 1
+        return 2 ** max(self.config.num_downscales - self.step // self.config.scaled(self.config.resolution_schedule), 0)
+
+    # ----------------------------------------------------------------------------------------------- rendering
+    def get_outputs(self, camera: Cameras) -> dict[str, torch.Tensor | None]:
+        """Render one camera.
+
+        Args:
+            camera: Cameras of length 1.
+        Returns:
+            ``rgb`` [H, W, 3] in [0, 1], ``depth`` [H, W, 1] (expected depth; None in training unless
+            ``output_depth_during_training``), ``accumulation`` [H, W, 1], ``background`` [3].
+            In training H, W are the size at the current training resolution.
+        """
+        from kc_splatfacto.render import rasterization
+
+        if len(camera) != 1:
+            raise ValueError(f"get_outputs renders one camera at a time, got {len(camera)}")
+        camera = rescale_cameras(camera.to(self.device), self.get_downscale_factor())
+        width, height = int(camera.widths[0]), int(camera.heights[0])
+        if self.config.sh_degree > 0:
+            colors = torch.cat([self.features_dc[:, None, :], self.features_rest], dim=1)
+            sh_degree = self.sh_degree_to_use()
+        else:
+            colors = torch.sigmoid(self.features_dc)
+            sh_degree = None
+        render_mode = "RGB+ED" if (self.config.output_depth_during_training or not self.training) else "RGB"
+        render, alpha, info = rasterization(
+            means=self.means,
+            quats=self.quats,
+            scales=torch.exp(self.scales),
+            opacities=torch.sigmoid(self.opacities).squeeze(-1),
+            colors=colors,
+            viewmats=camera.viewmats.float(),
+            Ks=camera.Ks.float(),
+            width=width,
+            height=height,
+            sh_degree=sh_degree,
+            near_plane=0.01,
+            far_plane=1e10,
+            render_mode=render_mode,
+            rasterize_mode=self.config.rasterize_mode,
+            absgrad=self.strategy.absgrad,
+            backend=self.config.rasterization_backend,
+        )
+        self.info = info
+        if self.training:
+            self.strategy.step_pre_backward(self.gauss_params, {}, self.strategy_state, self.step, info)
+        background = self._get_background_color()
+        alpha = alpha[0]
+        rgb = torch.clamp(render[0, ..., :3] + (1 - alpha) * background, 0.0, 1.0)
+        depth = None
+        if render_mode == "RGB+ED":
+            depth = render[0, ..., 3:4]
+            depth = torch.where(alpha > 0, depth, depth.detach().max())
+        return {"rgb": rgb, "depth": depth, "accumulation": alpha, "background": background}
+
+    def get_gt_img(self, image: torch.Tensor) -> torch.Tensor:
+        """[H, W, 3] uint8 or float -> float32 in [0, 1] at the current training resolution, on the model's device."""
+        image = image.to(self.device)
+        image = image.float() / 255.0 if image.dtype == torch.uint8 else image.float()
+        return resize_image(image, self.get_downscale_factor())
+
+    # ----------------------------------------------------------------------------------------------- losses
+    @property
+    def frequency_loss(self):
+        """KC-3DGS's wavelet/KC/CBC module, built on first use (None when every weight is zero)."""
+        cfg = self.config
+        if cfg.wavelet_weight == 0 and cfg.kc_weight == 0 and cfg.cbc_weight == 0:
+            return None
+        if self._frequency_loss is None:
+            from kc_splatfacto.losses.frequency import FrequencyLoss
+
+            self._frequency_loss = FrequencyLoss(
+                wavelet_weight=cfg.wavelet_weight,
+                kc_weight=cfg.kc_weight,
+                cbc_weight=cfg.cbc_weight,
+                wave=cfg.wave,
+                levels=cfg.wavelet_levels,
+                mode=cfg.wavelet_mode,
+                weighting=cfg.wavelet_weighting,
+                kc_supervised=cfg.kc_supervised,
+                cbc_supervised=cfg.cbc_supervised,
+                cbc_correlation=cfg.cbc_correlation,
+            )
+        return self._frequency_loss
+
+    def wavelet_target(self, gt_img: torch.Tensor, image_idx: int | None) -> Any:
+        """The GT's wavelet coefficients and statistics, computed once per (training image, resolution)."""
+        gt_bchw = gt_img.permute(2, 0, 1)[None]
+        if image_idx is None:
+            return self.frequency_loss.prepare_target(gt_bchw)
+        key = (int(image_idx), self.get_downscale_factor())
+        target = self._wavelet_targets.get(key)
+        if target is None:
+            target = self._wavelet_targets[key] = self.frequency_loss.prepare_target(gt_bchw)
+        return target
+
+    def get_loss_dict(self, outputs: dict[str, Any], batch: dict[str, Any]) -> dict[str, torch.Tensor]:
+        """Splatfacto's ``main_loss`` = (1 - ssim_lambda) L1 + ssim_lambda (1 - SSIM); ``scale_reg`` when enabled;
+        ``wavelet_loss`` / ``kc_loss`` / ``cbc_loss`` (already weighted) only when their weight is non-zero.
+
+        Args:
+            outputs: from :meth:`get_outputs`.
+            batch: ``image`` [H, W, 3] (uint8 or float, full resolution) and ``image_idx`` (int, the cache key).
+        """
+        from kc_splatfacto.losses.photometric import ssim
+
+        gt_img = self.get_gt_img(batch["image"])
+        pred_img = outputs["rgb"]
+        if gt_img.shape != pred_img.shape:
+            raise ValueError(f"render {tuple(pred_img.shape)} and ground truth {tuple(gt_img.shape)} differ in size")
+        l1 = torch.abs(gt_img - pred_img).mean()
+        pred_bchw = pred_img.permute(2, 0, 1)[None]
+        gt_bchw = gt_img.permute(2, 0, 1)[None]
+        sim_loss = 1 - ssim(pred_bchw, gt_bchw)
+        lam = self.config.ssim_lambda
+        loss_dict = {"main_loss": (1 - lam) * l1 + lam * sim_loss}
+        if self.config.use_scale_regularization:
+            if self.step % SCALE_REG_EVERY == 0:
+                scale_exp = torch.exp(self.scales)
+                ratio = scale_exp.amax(dim=-1) / scale_exp.amin(dim=-1)
+                max_ratio = torch.tensor(self.config.max_gauss_ratio, device=ratio.device)
+                loss_dict["scale_reg"] = SCALE_REG_WEIGHT * (torch.maximum(ratio, max_ratio) - max_ratio).mean()
+            else:
+                loss_dict["scale_reg"] = torch.zeros((), device=self.device)
+        frequency_loss = self.frequency_loss
+        if frequency_loss is not None:
+            target = self.wavelet_target(gt_img, batch.get("image_idx"))
+            loss_dict.update(frequency_loss(pred_bchw, target))
+        return loss_dict
+
+    @torch.no_grad()
+    def get_metrics_dict(
+        self, outputs: dict[str, Any], batch: dict[str, Any], with_kurtosis: bool = False
+    ) -> dict[str, Any]:
+        """``psnr`` and ``gaussian_count``; with ``with_kurtosis`` (logging steps only: two DWTs) also
+        ``kurtosis_render`` / ``kurtosis_gt``: per detail band (finest level first, H V D), channel-averaged."""
+        from kc_splatfacto.losses.photometric import psnr
+
+        gt_img = self.get_gt_img(batch["image"])
+        pred_img = outputs["rgb"]
+        metrics: dict[str, Any] = {
+            "psnr": float(psnr(pred_img.permute(2, 0, 1)[None], gt_img.permute(2, 0, 1)[None])),
+            "gaussian_count": self.num_points,
+        }
+        if with_kurtosis:
+            metrics["kurtosis_render"] = self.band_kurtosis(pred_img)
+            metrics["kurtosis_gt"] = self.band_kurtosis(gt_img)
+        return metrics
+
+    def band_kurtosis(self, image: torch.Tensor) -> list[float]:
+        """Excess kurtosis of every detail subband of ``image`` [H, W, 3], channel-averaged: 3 x levels values."""
+        import warnings
+
+        from kc_splatfacto.losses.frequency import band_kurtosis
+        from kc_splatfacto.losses.wavelets import dwt2
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # a small training resolution drops levels: warned once elsewhere
+            coeffs = dwt2(image.permute(2, 0, 1)[None].float(), wave=self.config.wave,
+                          levels=self.config.wavelet_levels, mode=self.config.wavelet_mode)
+        return [float(v) for v in band_kurtosis(coeffs)[0].mean(dim=0)]
+
+    # ----------------------------------------------------------------------------------------------- density control
+    def step_post_backward(self, optimizers: dict[str, torch.optim.Optimizer], step: int) -> dict[str, int]:
+        """Density control after the optimizer step (reads ``info['means2d']``'s gradient from this step's render)."""
+        return self.strategy.step_post_backward(self.gauss_params, optimizers, self.strategy_state, step, self.info)

@@ -1,0 +1,172 @@
+"""Adaptive density control of 3DGS (gsplat 1.5's ``DefaultStrategy``, as Splatfacto 1.1.5 configures it).
+
+Usage, in a training loop::
+
+    strategy = DefaultStrategy(grow_grad2d=0.0008, absgrad=True, prune_opa=0.1, prune_scale3d=0.5, ...)
+    state = strategy.initialize_state(scene_scale=scene_scale)
+    for step in range(max_steps):
+        render, alpha, info = rasterization(..., absgrad=strategy.absgrad)
+        strategy.step_pre_backward(params, optimizers, state, step, info)   # keeps means2d's gradient
+        loss.backward()
+        for opt in optimizers.values():
+            opt.step(); opt.zero_grad(set_to_none=True)
+        strategy.step_post_backward(params, optimizers, state, step, info)  # grow / prune / reset opacity
+
+Semantics (gsplat 1.5.3): the 2D mean gradient of every visible Gaussian is scaled to NDC-like units
+(x by width/2 * n_cameras, y by height/2 * n_cameras) and its norm accumulated. Every ``refine_every`` steps after
+``refine_start_iter`` (and before ``refine_stop_iter``, skipping the ``pause_refine_after_reset`` steps following each
+opacity reset) Gaussians whose mean accumulated gradient exceeds ``grow_grad2d`` are duplicated when small
+(max scale <= ``grow_scale3d`` x scene scale) or split in two when large (or, before ``refine_scale2d_stop_iter``,
+when their screen radius exceeds ``grow_scale2d`` of the image); then Gaussians with opacity < ``prune_opa`` are
+removed, and after the first opacity reset also those larger than ``prune_scale3d`` x scene scale (or, before
+``refine_scale2d_stop_iter``, than ``prune_scale2d`` of the screen). Every ``reset_every`` steps opacities are
+clamped to 2 ``prune_opa``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from kc_splatfacto.model import ops
+
+
+class NoGaussiansLeftError(RuntimeError):
+    """Density control removed every Gaussian."""
+
+
+@dataclass
+class DefaultStrategy:
+    """Splatfacto 1.1.5's values are set by ``SplatfactoModelConfig``; the defaults here are gsplat's."""
+
+    prune_opa: float = 0.005
+    grow_grad2d: float = 0.0002
+    grow_scale3d: float = 0.01
+    grow_scale2d: float = 0.05
+    prune_scale3d: float = 0.1
+    prune_scale2d: float = 0.15
+    refine_scale2d_stop_iter: int = 0
+    refine_start_iter: int = 500
+    refine_stop_iter: int = 15_000
+    reset_every: int = 3000
+    refine_every: int = 100
+    pause_refine_after_reset: int = 0
+    absgrad: bool = False
+    revised_opacity: bool = False
+    n_split_samples: int = 2
+    key_for_gradient: str = "means2d"
+
+    def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]:
+        """Running statistics: ``grad2d`` [N] and ``count`` [N] (and ``radii`` [N]), created lazily."""
+        state: dict[str, Any] = {"grad2d": None, "count": None, "scene_scale": float(scene_scale)}
+        if self.refine_scale2d_stop_iter > 0:
+            state["radii"] = None
+        return state
+
+    def step_pre_backward(self, params, optimizers, state: dict[str, Any], step: int, info: dict[str, Any]) -> None:
+        """Ask autograd to keep the gradient of the projected means (a non-leaf tensor)."""
+        if self.key_for_gradient not in info:
+            raise KeyError(f"rasterization meta has no '{self.key_for_gradient}' (keys: {sorted(info)})")
+        means2d = info[self.key_for_gradient]
+        if means2d.requires_grad:
+            means2d.retain_grad()
+
+    def step_post_backward(
+        self, params, optimizers, state: dict[str, Any], step: int, info: dict[str, Any]
+    ) -> dict[str, int]:
+        """Accumulate statistics, then grow/prune/reset on the schedule. Returns counts of what it did."""
+        report = {"duplicated": 0, "split": 0, "pruned": 0, "opacity_reset": 0}
+        if step >= self.refine_stop_iter:
+            return report
+        self._update_state(params, state, info)
+        if (
+            step > self.refine_start_iter
+            and step % self.refine_every == 0
+            and step % self.reset_every >= self.pause_refine_after_reset
+        ):
+            report["duplicated"], report["split"] = self._grow_gs(params, optimizers, state, step)
+            report["pruned"] = self._prune_gs(params, optimizers, state, step)
+            state["grad2d"].zero_()
+            state["count"].zero_()
+            if self.refine_scale2d_stop_iter > 0:
+                state["radii"].zero_()
+            if len(params["means"]) == 0:
+                raise NoGaussiansLeftError(
+                    f"density control at step {step} removed every Gaussian (opacity < {self.prune_opa} or larger "
+                    f"than {self.prune_scale3d} x scene scale {state['scene_scale']:.4g}); check the scene scale "
+                    f"and the initialization, or lower --pipeline.model.cull-alpha-thresh"
+                )
+        if step % self.reset_every == 0 and step > 0:
+            ops.reset_opa(params, optimizers, state, value=self.prune_opa * 2.0)
+            report["opacity_reset"] = 1
+        return report
+
+    @torch.no_grad()
+    def _update_state(self, params, state: dict[str, Any], info: dict[str, Any]) -> None:
+        means2d = info[self.key_for_gradient]
+        grads = means2d.absgrad if self.absgrad else means2d.grad
+        if grads is None:
+            kind = "absgrad" if self.absgrad else "grad"
+            raise RuntimeError(
+                f"meta['{self.key_for_gradient}'].{kind} is empty: call step_pre_backward before backward"
+                + (" and rasterize with absgrad=True" if self.absgrad else "")
+            )
+        grads = grads.clone()
+        grads[..., 0] *= info["width"] / 2.0 * info["n_cameras"]
+        grads[..., 1] *= info["height"] / 2.0 * info["n_cameras"]
+        n_gaussian = len(params["means"])
+        device = grads.device
+        if state["grad2d"] is None:
+            state["grad2d"] = torch.zeros(n_gaussian, device=device)
+        if state["count"] is None:
+            state["count"] = torch.zeros(n_gaussian, device=device)
+        if self.refine_scale2d_stop_iter > 0 and state["radii"] is None:
+            state["radii"] = torch.zeros(n_gaussian, device=device)
+        radii = info["radii"]
+        if radii.dim() == 3:  # gsplat 1.5: per-axis radii [C, N, 2]
+            sel = (radii > 0).all(dim=-1)
+            radii_max = radii[sel].max(dim=-1).values
+        else:
+            sel = radii > 0
+            radii_max = radii[sel]
+        gs_ids = torch.where(sel)[1]
+        state["grad2d"].index_add_(0, gs_ids, grads[sel].norm(dim=-1))
+        state["count"].index_add_(0, gs_ids, torch.ones_like(gs_ids, dtype=torch.float32))
+        if self.refine_scale2d_stop_iter > 0:
+            state["radii"][gs_ids] = torch.maximum(
+                state["radii"][gs_ids], radii_max.float() / float(max(info["width"], info["height"]))
+            )
+
+    @torch.no_grad()
+    def _grow_gs(self, params, optimizers, state: dict[str, Any], step: int) -> tuple[int, int]:
+        grads = state["grad2d"] / state["count"].clamp_min(1)
+        is_grad_high = grads > self.grow_grad2d
+        is_small = torch.exp(params["scales"]).max(dim=-1).values <= self.grow_scale3d * state["scene_scale"]
+        is_dupli = is_grad_high & is_small
+        n_dupli = int(is_dupli.sum())
+        is_split = is_grad_high & ~is_small
+        if step < self.refine_scale2d_stop_iter:
+            is_split |= state["radii"] > self.grow_scale2d
+        n_split = int(is_split.sum())
+        if n_dupli > 0:
+            ops.duplicate(params, optimizers, state, is_dupli)
+        # copies made by duplication are not split in the same round
+        is_split = torch.cat([is_split, torch.zeros(n_dupli, dtype=torch.bool, device=is_split.device)])
+        if n_split > 0:
+            ops.split(params, optimizers, state, is_split, self.n_split_samples, self.revised_opacity)
+        return n_dupli, n_split
+
+    @torch.no_grad()
+    def _prune_gs(self, params, optimizers, state: dict[str, Any], step: int) -> int:
+        is_prune = torch.sigmoid(params["opacities"].flatten()) < self.prune_opa
+        if step > self.reset_every:
+            is_too_big = torch.exp(params["scales"]).max(dim=-1).values > self.prune_scale3d * state["scene_scale"]
+            if step < self.refine_scale2d_stop_iter:
+                is_too_big |= state["radii"] > self.prune_scale2d
+            is_prune |= is_too_big
+        n_prune = int(is_prune.sum())
+        if n_prune > 0:
+            ops.remove(params, optimizers, state, is_prune)
+        return n_prune

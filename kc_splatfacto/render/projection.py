@@ -1,0 +1,216 @@
+"""EWA projection of 3D Gaussians to screen space, as gsplat 1.5.3's ``fully_fused_projection`` (pinhole, unpacked).
+
+Every function is plain differentiable torch: autograd provides the backward. Culled (camera, Gaussian) pairs get
+radii 0 and zeros in every other output, with zero gradient, as gsplat's kernels leave them.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Optional
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from .constants import ALPHA_THRESHOLD, EPS2D, EXTENT_SIGMA, FAR_PLANE, FOV_CLAMP_MARGIN, NEAR_PLANE
+
+
+def quat_to_rotmat(quats: Tensor) -> Tensor:
+    """Rotation matrices from quaternions, normalized here.
+
+    Args:
+        quats: [..., 4] wxyz, any norm. A zero quaternion gives the identity (no NaN, zero gradient), where
+            gsplat's ``rsqrt`` would give NaN.
+
+    Returns:
+        [..., 3, 3] rotation matrices.
+    """
+    w, x, y, z = torch.unbind(F.normalize(quats, p=2, dim=-1), dim=-1)
+    rotmat = torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    )
+    return rotmat.reshape(quats.shape[:-1] + (3, 3))
+
+
+def quat_scale_to_covar(quats: Tensor, scales: Tensor) -> Tensor:
+    """World-space covariances ``R S S^T R^T``.
+
+    Args:
+        quats: [N, 4] wxyz (normalized inside).
+        scales: [N, 3] linear standard deviations along the local axes.
+
+    Returns:
+        [N, 3, 3] symmetric covariances.
+    """
+    rs = quat_to_rotmat(quats) * scales[..., None, :]  # [N, 3, 3], columns scaled
+    return rs @ rs.transpose(-1, -2)
+
+
+def world_to_cam(means: Tensor, covars: Tensor, viewmats: Tensor) -> tuple[Tensor, Tensor]:
+    """Means and covariances in camera space.
+
+    Args:
+        means: [N, 3] world positions.
+        covars: [N, 3, 3] world covariances.
+        viewmats: [C, 4, 4] world-to-camera (OpenCV axes: x right, y down, z forward).
+
+    Returns:
+        means_c [C, N, 3] and covars_c [C, N, 3, 3].
+    """
+    rot = viewmats[:, :3, :3]  # [C, 3, 3]
+    trans = viewmats[:, :3, 3]  # [C, 3]
+    means_c = torch.einsum("cij,nj->cni", rot, means) + trans[:, None, :]
+    covars_c = torch.einsum("cij,njk,clk->cnil", rot, covars, rot)
+    return means_c, covars_c
+
+
+def persp_proj(
+    means_c: Tensor, covars_c: Tensor, Ks: Tensor, width: int, height: int
+) -> tuple[Tensor, Tensor]:
+    """Pinhole projection of means and the EWA (first-order) projection of covariances.
+
+    The Jacobian is evaluated at x/z, y/z clamped to the image's extent plus ``FOV_CLAMP_MARGIN * tan(fov/2)`` on each
+    side (gsplat's ``persp_proj``), so Gaussians far outside the frustum keep a bounded footprint. The mean itself is
+    not clamped.
+
+    Args:
+        means_c: [C, N, 3] camera-space means with z > 0 (callers replace invalid depths first).
+        covars_c: [C, N, 3, 3] camera-space covariances.
+        Ks: [C, 3, 3] intrinsics.
+        width, height: image size in pixels.
+
+    Returns:
+        means2d [C, N, 2] in pixels and covars2d [C, N, 2, 2] (before the eps2d dilation).
+    """
+    x, y, z = torch.unbind(means_c, dim=-1)  # [C, N]
+    fx = Ks[:, 0, 0, None]
+    fy = Ks[:, 1, 1, None]
+    cx = Ks[:, 0, 2, None]
+    cy = Ks[:, 1, 2, None]
+    tan_fovx = 0.5 * width / fx
+    tan_fovy = 0.5 * height / fy
+    lim_x_pos = (width - cx) / fx + FOV_CLAMP_MARGIN * tan_fovx
+    lim_x_neg = cx / fx + FOV_CLAMP_MARGIN * tan_fovx
+    lim_y_pos = (height - cy) / fy + FOV_CLAMP_MARGIN * tan_fovy
+    lim_y_neg = cy / fy + FOV_CLAMP_MARGIN * tan_fovy
+    rz = 1.0 / z
+    tx = z * torch.minimum(lim_x_pos, torch.maximum(-lim_x_neg, x * rz))
+    ty = z * torch.minimum(lim_y_pos, torch.maximum(-lim_y_neg, y * rz))
+    zeros = torch.zeros_like(z)
+    jac = torch.stack(
+        [fx * rz, zeros, -fx * tx * rz * rz, zeros, fy * rz, -fy * ty * rz * rz], dim=-1
+    ).reshape(z.shape + (2, 3))
+    covars2d = jac @ covars_c @ jac.transpose(-1, -2)
+    means2d = torch.stack([fx * x * rz + cx, fy * y * rz + cy], dim=-1)
+    return means2d, covars2d
+
+
+# Largest radius stored (pixels); any radius this large already covers every tile of any image.
+RADIUS_MAX = 2**30
+
+
+class Projection(NamedTuple):
+    """Outputs of :func:`fully_fused_projection`; entries of culled pairs are 0."""
+
+    radii: Tensor  # [C, N, 2] int32, per-axis pixel radii; 0 = culled
+    means2d: Tensor  # [C, N, 2]
+    depths: Tensor  # [C, N] camera-space z
+    conics: Tensor  # [C, N, 3] upper triangle (a, b, c) of the inverse dilated 2D covariance
+    compensations: Optional[Tensor]  # [C, N] antialiasing opacity factor, or None
+
+
+def fully_fused_projection(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    *,
+    opacities: Optional[Tensor] = None,
+    eps2d: float = EPS2D,
+    near_plane: float = NEAR_PLANE,
+    far_plane: float = FAR_PLANE,
+    radius_clip: float = 0.0,
+    calc_compensations: bool = False,
+) -> Projection:
+    """Project Gaussians into C pinhole cameras, with gsplat 1.5.3's culling and radii.
+
+    Steps (all per camera and Gaussian):
+    ``covar = R S S^T R^T``; camera space; cull unless ``near_plane <= z <= far_plane``; ``cov2d = J W covar W^T J^T``;
+    dilate ``cov2d += eps2d * I`` (compensation ``sqrt(max(0, det_orig / det_blur))`` when asked); cull when the dilated
+    determinant is <= 0; conic = inverse; when ``opacities`` are given, cull ``opacity (* compensation) < 1/255`` and
+    tighten the extent to ``min(3.33, sqrt(2 log(opacity / (1/255))))`` standard deviations; radii
+    ``ceil(extent * sqrt(cov2d_xx))``, ``ceil(extent * sqrt(cov2d_yy))``; cull when both are <= ``radius_clip`` or the
+    box lies outside the image.
+
+    Args:
+        means: [N, 3]; quats: [N, 4] wxyz (any norm); scales: [N, 3] linear.
+        viewmats: [C, 4, 4] world-to-camera; Ks: [C, 3, 3].
+        width, height: image size.
+        opacities: [N] in [0, 1] for the opacity-aware extent and culling (gsplat passes them), or None.
+        calc_compensations: return the antialiasing compensation (rasterize_mode "antialiased").
+
+    Returns:
+        :class:`Projection`.
+    """
+    covars = quat_scale_to_covar(quats, scales)
+    means_c, covars_c = world_to_cam(means, covars, viewmats)
+    depths_raw = means_c[..., 2]
+    # z > 0 additionally guards the division when a caller passes near_plane <= 0.
+    valid = (depths_raw >= near_plane) & (depths_raw <= far_plane) & (depths_raw > 0)
+    # Replace invalid depths before dividing: torch.where would otherwise route inf/NaN gradients of the unused branch.
+    safe_means_c = torch.where(valid[..., None], means_c, torch.ones_like(means_c))
+    means2d, covars2d = persp_proj(safe_means_c, covars_c, Ks, width, height)
+
+    a, b, c = covars2d[..., 0, 0], covars2d[..., 0, 1], covars2d[..., 1, 1]
+    det_orig = a * c - b * b
+    a = a + eps2d
+    c = c + eps2d
+    det = a * c - b * b
+    valid = valid & (det > 0)
+    safe_det = torch.where(valid, det, torch.ones_like(det))
+    conics = torch.stack([c / safe_det, -b / safe_det, a / safe_det], dim=-1)
+
+    compensations = None
+    if calc_compensations:
+        ratio = det_orig / safe_det
+        positive = valid & (ratio > 0)
+        compensations = torch.where(positive, torch.sqrt(torch.where(positive, ratio, torch.ones_like(ratio))), 0.0 * ratio)
+
+    with torch.no_grad():
+        extent = torch.full_like(det, EXTENT_SIGMA)
+        if opacities is not None:
+            opacity = opacities.detach()[None, :].expand_as(det)
+            if compensations is not None:
+                opacity = opacity * compensations.detach()
+            valid = valid & (opacity >= ALPHA_THRESHOLD)
+            log_ratio = torch.log(torch.clamp(opacity, min=ALPHA_THRESHOLD) / ALPHA_THRESHOLD)
+            extent = torch.minimum(extent, torch.sqrt(2.0 * log_ratio))
+        var_x = torch.where(valid, a.detach(), torch.zeros_like(det))
+        var_y = torch.where(valid, c.detach(), torch.zeros_like(det))
+        radius_x = torch.ceil(extent * torch.sqrt(var_x.clamp(min=0)))
+        radius_y = torch.ceil(extent * torch.sqrt(var_y.clamp(min=0)))
+        valid = valid & ~((radius_x <= radius_clip) & (radius_y <= radius_clip))
+        mx, my = means2d.detach()[..., 0], means2d.detach()[..., 1]
+        outside = (mx + radius_x <= 0) | (mx - radius_x >= width) | (my + radius_y <= 0) | (my - radius_y >= height)
+        valid = valid & ~outside
+        # Saturate far below int32's limit: a Gaussian of scale 1e4 right in front of the camera can exceed 2^31 px.
+        radius_max = float(RADIUS_MAX)
+        radii = torch.stack([radius_x, radius_y], dim=-1).clamp(max=radius_max)
+        radii = torch.where(valid[..., None], radii, torch.zeros_like(radii)).to(torch.int32)
+
+    zero = torch.zeros((), dtype=means.dtype, device=means.device)
+    means2d = torch.where(valid[..., None], means2d, zero)
+    depths = torch.where(valid, depths_raw, zero)
+    conics = torch.where(valid[..., None], conics, zero)
+    if compensations is not None:
+        compensations = torch.where(valid, compensations, zero)
+    return Projection(radii, means2d, depths, conics, compensations)
+

@@ -1,0 +1,279 @@
+"""``rasterization()``: gsplat 1.5.3's call and return contract (unpacked, pinhole), with three backends.
+
+- ``"torch"``: the reference (:func:`rasterize_to_pixels_torch`), differentiable by autograd; slow.
+- ``"cpu"``: the compiled per-pixel kernels (``rasterize_cpu.rasterize_to_pixels_cpu``), same projection/SH/tiles.
+- ``"gsplat"``: ``gsplat.rasterization`` itself; needs gsplat installed and CUDA tensors (a clear error otherwise).
+- ``"auto"``: gsplat for CUDA tensors when gsplat imports, else cpu.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Callable, Literal, Optional
+
+import torch
+from torch import Tensor
+
+from .constants import EPS2D, EXPECTED_DEPTH_ALPHA_MIN, FAR_PLANE, NEAR_PLANE, TILE_SIZE
+from .projection import fully_fused_projection
+from .rasterize_torch import rasterize_to_pixels_torch
+from .sh import sh_to_rgb
+from .tiles import isect_offset_encode, isect_tiles, tile_grid
+
+RenderMode = Literal["RGB", "D", "ED", "RGB+D", "RGB+ED"]
+RasterizeMode = Literal["classic", "antialiased"]
+Backend = Literal["auto", "cpu", "torch", "gsplat"]
+RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
+RASTERIZE_MODES = ("classic", "antialiased")
+BACKENDS = ("auto", "cpu", "torch", "gsplat")
+
+
+def _gsplat_available() -> bool:
+    try:
+        import gsplat  # noqa: F401
+    except Exception:  # ImportError, or a broken CUDA build raising at import
+        return False
+    return True
+
+
+def _cpu_rasterizer() -> Optional[Callable]:
+    try:
+        from .rasterize_cpu import rasterize_to_pixels_cpu
+    except ImportError:
+        return None
+    return rasterize_to_pixels_cpu
+
+
+def resolve_backend(backend: str, device: torch.device) -> str:
+    """The concrete backend for ``backend`` and tensors on ``device``; raises on impossible requests.
+
+    Raises:
+        ValueError: unknown backend, or "cpu"/"torch" asked with CUDA tensors... see messages.
+        RuntimeError: "gsplat" asked without gsplat or without CUDA tensors (never a silent fallback).
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if backend == "auto":
+        if device.type == "cuda" and _gsplat_available():
+            return "gsplat"
+        if _cpu_rasterizer() is not None:
+            return "cpu"
+        warnings.warn(
+            "rasterization(backend='auto'): the compiled cpu rasterizer (kc_splatfacto.render.rasterize_cpu) is not "
+            "available; using the slow torch reference",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+        return "torch"
+    if backend == "gsplat":
+        if not _gsplat_available():
+            raise RuntimeError(
+                "rasterization(backend='gsplat') needs the gsplat package (pip install gsplat==1.5.3, with CUDA); "
+                "use backend='cpu' or 'auto' on machines without it"
+            )
+        if device.type != "cuda":
+            raise RuntimeError(
+                f"rasterization(backend='gsplat') needs CUDA tensors, got tensors on {device}; "
+                "move them with .cuda() or use backend='cpu'"
+            )
+        return "gsplat"
+    if backend == "cpu":
+        if device.type != "cpu":
+            raise ValueError(f"rasterization(backend='cpu') needs CPU tensors, got {device}; use backend='gsplat'")
+        if _cpu_rasterizer() is None:
+            raise ImportError(
+                "rasterization(backend='cpu'): kc_splatfacto.render.rasterize_cpu (numba kernels) is not available; "
+                "install numba or use backend='torch'"
+            )
+    return backend
+
+
+def _check_inputs(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    sh_degree: Optional[int],
+    backgrounds: Optional[Tensor],
+    render_mode: str,
+    rasterize_mode: str,
+) -> None:
+    if means.dim() != 2 or means.shape[-1] != 3:
+        raise ValueError(f"means must be [N, 3], got {tuple(means.shape)}")
+    n = means.shape[0]
+    if quats.shape != (n, 4):
+        raise ValueError(f"quats must be [N, 4] = [{n}, 4] (wxyz), got {tuple(quats.shape)}")
+    if scales.shape != (n, 3):
+        raise ValueError(f"scales must be [N, 3] = [{n}, 3] (linear, not log), got {tuple(scales.shape)}")
+    if opacities.shape != (n,):
+        raise ValueError(f"opacities must be [N] = [{n}] in [0, 1] (not logits, no trailing 1), got {tuple(opacities.shape)}")
+    if viewmats.dim() != 3 or viewmats.shape[1:] != (4, 4):
+        raise ValueError(f"viewmats must be [C, 4, 4] world-to-camera, got {tuple(viewmats.shape)}")
+    c = viewmats.shape[0]
+    if Ks.shape != (c, 3, 3):
+        raise ValueError(f"Ks must be [C, 3, 3] = [{c}, 3, 3], got {tuple(Ks.shape)}")
+    if int(width) != width or int(height) != height or width < 1 or height < 1:
+        raise ValueError(f"width and height must be positive integers, got width={width}, height={height}")
+    if sh_degree is None:
+        if not (colors.dim() == 2 and colors.shape[0] == n) and not (colors.dim() == 3 and colors.shape[:2] == (c, n)):
+            raise ValueError(
+                f"colors must be [N, D] or [C, N, D] (N={n}, C={c}) when sh_degree is None, got {tuple(colors.shape)}; "
+                "pass sh_degree for SH coefficients [N, K, 3]"
+            )
+    else:
+        if not 0 <= sh_degree <= 3:
+            raise ValueError(f"sh_degree must be in 0..3, got {sh_degree}")
+        ok = (colors.dim() == 3 and colors.shape[0] == n) or (colors.dim() == 4 and colors.shape[:2] == (c, n))
+        if not ok or colors.shape[-1] != 3 or colors.shape[-2] < (sh_degree + 1) ** 2:
+            raise ValueError(
+                f"SH colors must be [N, K, 3] or [C, N, K, 3] with K >= (sh_degree + 1)^2 = {(sh_degree + 1) ** 2}, "
+                f"got {tuple(colors.shape)}"
+            )
+    if render_mode not in RENDER_MODES:
+        raise ValueError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
+    if rasterize_mode not in RASTERIZE_MODES:
+        raise ValueError(f"rasterize_mode must be one of {RASTERIZE_MODES}, got {rasterize_mode!r}")
+    if backgrounds is not None and (backgrounds.dim() != 2 or backgrounds.shape[0] != c):
+        raise ValueError(f"backgrounds must be [C, D] with C={c}, got {tuple(backgrounds.shape)}")
+    for name, tensor in (
+        ("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
+        ("colors", colors), ("viewmats", viewmats), ("Ks", Ks),
+    ):
+        if not torch.isfinite(tensor).all():
+            bad = int((~torch.isfinite(tensor)).sum())
+            raise ValueError(f"rasterization: {name} holds {bad} NaN/inf value(s); fix the parameters (or their optimizer)")
+
+
+def rasterization(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    *,
+    sh_degree: Optional[int] = None,
+    near_plane: float = NEAR_PLANE,
+    far_plane: float = FAR_PLANE,
+    eps2d: float = EPS2D,
+    radius_clip: float = 0.0,
+    backgrounds: Optional[Tensor] = None,
+    render_mode: RenderMode = "RGB",
+    rasterize_mode: RasterizeMode = "classic",
+    absgrad: bool = False,
+    tile_size: int = TILE_SIZE,
+    backend: Backend = "auto",
+) -> tuple[Tensor, Tensor, dict]:
+    """Render N Gaussians into C pinhole cameras (gsplat 1.5.3 ``rasterization``, packed=False).
+
+    Args:
+        means: [N, 3]; quats: [N, 4] wxyz, any norm; scales: [N, 3] linear; opacities: [N] in [0, 1].
+        colors: [N, D] or [C, N, D] post-activation, or SH coefficients [N, K, 3] / [C, N, K, 3] with ``sh_degree``
+            (colour = max(SH(means - camera centre) + 0.5, 0)).
+        viewmats: [C, 4, 4] world-to-camera (OpenCV); Ks: [C, 3, 3]; width, height: pixels.
+        render_mode: "RGB"; "D" accumulated depth; "ED" expected depth (accumulated depth / max(alpha, 1e-10));
+            "RGB+D", "RGB+ED": depth as an extra last channel (background 0 for it).
+        rasterize_mode: "antialiased" multiplies opacities by the eps2d compensation.
+        absgrad: fill ``meta["means2d"].absgrad`` in backward.
+        backend: "auto" | "cpu" | "torch" | "gsplat" (see the module docstring).
+
+    Returns:
+        render_colors [C, H, W, ch], render_alphas [C, H, W, 1], meta (``means2d`` [C, N, 2] whose ``.grad`` backward
+        fills, ``radii`` [C, N, 2] int32, ``depths`` [C, N], ``conics``, ``opacities`` [C, N], tile data, ``width``,
+        ``height``, ``tile_size``, ``n_cameras``).
+    """
+    resolved = resolve_backend(backend, means.device)
+    if resolved == "gsplat":
+        import gsplat
+
+        return gsplat.rasterization(
+            means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+            near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, radius_clip=radius_clip, sh_degree=sh_degree,
+            tile_size=tile_size, backgrounds=backgrounds, render_mode=render_mode, rasterize_mode=rasterize_mode,
+            absgrad=absgrad, packed=False,
+        )
+
+    _check_inputs(
+        means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds, render_mode,
+        rasterize_mode,
+    )
+    width, height = int(width), int(height)
+    n_cameras = viewmats.shape[0]
+    proj = fully_fused_projection(
+        means, quats, scales, viewmats, Ks, width, height,
+        opacities=opacities, eps2d=eps2d, near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip,
+        calc_compensations=(rasterize_mode == "antialiased"),
+    )
+    radii, means2d, depths, conics = proj.radii, proj.means2d, proj.depths, proj.conics
+    opacities_c = opacities[None, :].expand(n_cameras, -1)
+    if proj.compensations is not None:
+        opacities_c = opacities_c * proj.compensations
+    if means2d.requires_grad:
+        means2d.retain_grad()  # density control reads meta["means2d"].grad
+
+    visible = (radii > 0).all(dim=-1)  # [C, N]
+    if sh_degree is None:
+        colors_c = colors if colors.dim() == 3 else colors[None].expand(n_cameras, -1, -1)
+    else:
+        camtoworlds = torch.linalg.inv(viewmats)
+        dirs = means[None, :, :] - camtoworlds[:, None, :3, 3]  # [C, N, 3]
+        shs = colors if colors.dim() == 4 else colors[None].expand(n_cameras, -1, -1, -1)
+        colors_c = sh_to_rgb(sh_degree, dirs, shs, masks=visible)
+
+    if render_mode in ("RGB+D", "RGB+ED"):
+        colors_c = torch.cat([colors_c, depths[..., None]], dim=-1)
+        if backgrounds is not None:
+            backgrounds = torch.cat([backgrounds, backgrounds.new_zeros(n_cameras, 1)], dim=-1)
+    elif render_mode in ("D", "ED"):
+        colors_c = depths[..., None]
+        if backgrounds is not None:
+            backgrounds = backgrounds.new_zeros(n_cameras, 1)
+    if backgrounds is not None and backgrounds.shape[-1] != colors_c.shape[-1]:
+        raise ValueError(
+            f"backgrounds have {backgrounds.shape[-1]} channels but colors have {colors_c.shape[-1]} (render_mode {render_mode})"
+        )
+
+    tile_width, tile_height = tile_grid(width, height, tile_size)
+    tiles_per_gauss, isect_ids, flatten_ids = isect_tiles(means2d, radii, depths, tile_size, tile_width, tile_height)
+    isect_offsets = isect_offset_encode(isect_ids, n_cameras, tile_width, tile_height)
+
+    rasterize = rasterize_to_pixels_torch if resolved == "torch" else _cpu_rasterizer()
+    render_colors, render_alphas = rasterize(
+        means2d, conics, colors_c, opacities_c, width, height, tile_size, isect_offsets, flatten_ids,
+        backgrounds=backgrounds, absgrad=absgrad and means2d.requires_grad,
+    )
+    if render_mode in ("ED", "RGB+ED"):
+        render_colors = torch.cat(
+            [render_colors[..., :-1], render_colors[..., -1:] / render_alphas.clamp(min=EXPECTED_DEPTH_ALPHA_MIN)],
+            dim=-1,
+        )
+    meta = {
+        "camera_ids": None,
+        "gaussian_ids": None,
+        "radii": radii,
+        "means2d": means2d,
+        "depths": depths,
+        "conics": conics,
+        "opacities": opacities_c,
+        "tile_width": tile_width,
+        "tile_height": tile_height,
+        "tiles_per_gauss": tiles_per_gauss,
+        "isect_ids": isect_ids,
+        "flatten_ids": flatten_ids,
+        "isect_offsets": isect_offsets,
+        "width": width,
+        "height": height,
+        "tile_size": tile_size,
+        "n_batches": 1,
+        "n_cameras": n_cameras,
+        "backend": resolved,
+    }
+    return render_colors, render_alphas, meta
