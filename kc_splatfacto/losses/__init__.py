@@ -1,1 +1,44 @@
 """Loss layer: differentiable DWT, frequency-domain losses (wavelet L1, KC, CBC) and photometric losses."""
+
+from kc_splatfacto.losses.frequency import (
+    WEIGHTINGS,
+    FrequencyLoss,
+    WaveletTarget,
+    band_kurtosis,
+    band_kurtosis_for_logging,
+    cbc_loss,
+    covariance_penalty,
+    cross_band_covariance,
+    kc_loss,
+    kurtosis_spread,
+    level_weights,
+    prepare_target,
+    wavelet_l1,
+)
+from kc_splatfacto.losses.photometric import dssim, l1, psnr, ssim
+from kc_splatfacto.losses.wavelets import MODES, WaveletCoeffs, daubechies_filters, dwt2, dwt_max_level
+
+__all__ = [
+    "MODES",
+    "WEIGHTINGS",
+    "FrequencyLoss",
+    "WaveletCoeffs",
+    "WaveletTarget",
+    "band_kurtosis",
+    "band_kurtosis_for_logging",
+    "cbc_loss",
+    "covariance_penalty",
+    "cross_band_covariance",
+    "daubechies_filters",
+    "dssim",
+    "dwt2",
+    "dwt_max_level",
+    "kc_loss",
+    "kurtosis_spread",
+    "l1",
+    "level_weights",
+    "prepare_target",
+    "psnr",
+    "ssim",
+    "wavelet_l1",
+]

@@ -1,0 +1,269 @@
+"""Frequency losses against independent numpy / scipy / PyWavelets computations, and FrequencyLoss's contract."""
+
+import numpy as np
+import pytest
+import pywt
+import scipy.stats
+import torch
+import torch.nn.functional as F
+
+from kc_splatfacto.losses import (
+    FrequencyLoss,
+    WaveletTarget,
+    band_kurtosis,
+    band_kurtosis_for_logging,
+    cbc_loss,
+    covariance_penalty,
+    cross_band_covariance,
+    dwt2,
+    kc_loss,
+    kurtosis_spread,
+    level_weights,
+    prepare_target,
+    wavelet_l1,
+)
+
+
+def load_image(scene_dir, name="0000.jpg", size=(192, 128)) -> torch.Tensor:
+    """A real photo as [1, 3, H, W] float64 in [0, 1] (downscaled to keep tests fast)."""
+    from PIL import Image
+
+    with Image.open(scene_dir / "images" / name) as img:
+        rgb = np.asarray(img.convert("RGB").resize(size, Image.BILINEAR), dtype=np.float64) / 255.0
+    return torch.from_numpy(rgb).permute(2, 0, 1)[None].contiguous()
+
+
+def blur(image: torch.Tensor, sigma: float = 1.5) -> torch.Tensor:
+    radius = int(3 * sigma)
+    taps = torch.exp(-0.5 * (torch.arange(-radius, radius + 1, dtype=image.dtype) / sigma) ** 2)
+    taps = taps / taps.sum()
+    channels = image.shape[1]
+    padded = F.pad(image, (radius, radius, radius, radius), mode="reflect")
+    out = F.conv2d(padded, taps.view(1, 1, 1, -1).expand(channels, 1, 1, -1), groups=channels)
+    return F.conv2d(out, taps.view(1, 1, -1, 1).expand(channels, 1, -1, 1), groups=channels)
+
+
+def pywt_bands(image: np.ndarray, wave="db3", mode="symmetric", levels=3):
+    """[level][orientation] -> 2D array, finest first, from PyWavelets (the independent oracle)."""
+    coeffs = pywt.wavedec2(image, wave, mode=mode, level=levels)
+    return [list(coeffs[-j]) for j in range(1, levels + 1)]
+
+
+@pytest.fixture
+def heavy_tailed_pair():
+    rng = np.random.default_rng(7)
+    # Student-t noise: heavy tails in every subband (kurtosis well above 0)
+    pred = rng.standard_t(df=4, size=(2, 3, 64, 48)) * 0.1 + 0.5
+    gt = rng.standard_t(df=6, size=(2, 3, 64, 48)) * 0.1 + 0.5
+    return pred, gt
+
+
+def test_level_weights():
+    assert level_weights(3, "paper") == [2.0, 4.0, 8.0]
+    assert level_weights(3, "fine") == [8.0, 4.0, 2.0]
+    assert level_weights(3, "uniform") == [1.0, 1.0, 1.0]
+    with pytest.raises(ValueError, match="weighting"):
+        level_weights(3, "coarse")
+
+
+@pytest.mark.parametrize("weighting", ["paper", "fine", "uniform"])
+def test_wavelet_l1_matches_numpy(heavy_tailed_pair, weighting):
+    pred, gt = heavy_tailed_pair
+    weights = {"paper": [2, 4, 8], "fine": [8, 4, 2], "uniform": [1, 1, 1]}[weighting]
+    expected = 0.0
+    for j in range(3):
+        for o in range(3):
+            diffs = [
+                np.abs(pywt_bands(pred[b, c])[j][o] - pywt_bands(gt[b, c])[j][o])
+                for b in range(2)
+                for c in range(3)
+            ]
+            expected += weights[j] * np.mean(np.stack(diffs))
+    ours = wavelet_l1(torch.tensor(pred), torch.tensor(gt), weighting=weighting)
+    assert abs(float(ours) - expected) <= 1e-10 * expected
+
+
+def test_band_kurtosis_matches_scipy(heavy_tailed_pair):
+    pred, _ = heavy_tailed_pair
+    ours = band_kurtosis(dwt2(torch.tensor(pred))).numpy()
+    assert ours.shape == (2, 3, 9)
+    for b in range(2):
+        for c in range(3):
+            bands = pywt_bands(pred[b, c])
+            expected = [scipy.stats.kurtosis(bands[j][o].ravel(), fisher=True, bias=True) for j in range(3) for o in range(3)]
+            np.testing.assert_allclose(ours[b, c], expected, rtol=1e-4)
+    assert ours[..., :3].min() > 0.5  # really heavy-tailed data (the finest bands have the most samples)
+
+
+def test_band_kurtosis_float32_matches_scipy_on_real_image(castle_p30):
+    image = load_image(castle_p30)
+    ours = band_kurtosis(dwt2(image.float())).numpy()
+    for c in range(3):
+        bands = pywt_bands(image[0, c].numpy())
+        expected = [scipy.stats.kurtosis(bands[j][o].ravel(), fisher=True, bias=True) for j in range(3) for o in range(3)]
+        np.testing.assert_allclose(ours[0, c], expected, rtol=1e-4)
+
+
+def test_kurtosis_spread():
+    kurtosis = torch.tensor([[[1.0, 5.0, -2.0], [0.0, 0.0, 0.0]]])
+    torch.testing.assert_close(kurtosis_spread(kurtosis), torch.tensor([[7.0, 0.0]]))
+
+
+def test_kc_loss_matches_scipy_formula(heavy_tailed_pair):
+    pred, gt = heavy_tailed_pair
+    per_image = []
+    for b in range(2):
+        for c in range(3):
+            kp = np.array([scipy.stats.kurtosis(x.ravel()) for lvl in pywt_bands(pred[b, c]) for x in lvl])
+            kg = np.array([scipy.stats.kurtosis(x.ravel()) for lvl in pywt_bands(gt[b, c]) for x in lvl])
+            spread_p, spread_g = kp.max() - kp.min(), kg.max() - kg.min()
+            per_image.append(abs(spread_p - spread_g) + np.abs(kp - kg).sum())
+    expected = np.mean(per_image)
+    ours = kc_loss(torch.tensor(pred), torch.tensor(gt))
+    np.testing.assert_allclose(float(ours), expected, rtol=1e-6)
+    unsupervised = kc_loss(torch.tensor(pred), supervised=False)
+    spreads = [
+        np.ptp([scipy.stats.kurtosis(x.ravel()) for lvl in pywt_bands(pred[b, c]) for x in lvl])
+        for b in range(2)
+        for c in range(3)
+    ]
+    np.testing.assert_allclose(float(unsupervised), np.mean(spreads), rtol=1e-6)
+
+
+@pytest.mark.parametrize("correlation", [False, True])
+def test_cross_band_covariance_matches_numpy(heavy_tailed_pair, correlation):
+    pred, _ = heavy_tailed_pair
+    ours = cross_band_covariance(dwt2(torch.tensor(pred)), correlation=correlation)
+    oracle = np.corrcoef if correlation else np.cov
+    for b in range(2):
+        for c in range(3):
+            for j, level in enumerate(pywt_bands(pred[b, c])):
+                expected = oracle(np.stack([x.ravel() for x in level]))
+                np.testing.assert_allclose(ours[j][b, c].numpy(), expected, rtol=1e-6, atol=1e-12)
+
+
+@pytest.mark.parametrize("correlation", [False, True])
+def test_cbc_loss_matches_numpy(heavy_tailed_pair, correlation):
+    pred, gt = heavy_tailed_pair
+    oracle = np.corrcoef if correlation else np.cov
+
+    def l_cov(image):
+        total = 0.0
+        for level in pywt_bands(image):
+            cov = oracle(np.stack([x.ravel() for x in level]))
+            total += np.sum((cov - np.diag(np.diag(cov))) ** 2)
+        return total
+
+    lp = np.array([[l_cov(pred[b, c]) for c in range(3)] for b in range(2)])
+    lg = np.array([[l_cov(gt[b, c]) for c in range(3)] for b in range(2)])
+    np.testing.assert_allclose(covariance_penalty(dwt2(torch.tensor(pred)), correlation).numpy(), lp, rtol=1e-6)
+    ours = cbc_loss(torch.tensor(pred), torch.tensor(gt), correlation=correlation)
+    np.testing.assert_allclose(float(ours), np.mean(np.abs(lp - lg)), rtol=1e-6)
+    unsupervised = cbc_loss(torch.tensor(pred), supervised=False, correlation=correlation)
+    np.testing.assert_allclose(float(unsupervised), lp.mean(), rtol=1e-6)
+
+
+def test_prepare_target_is_detached_and_matches_direct_statistics(heavy_tailed_pair):
+    _, gt = heavy_tailed_pair
+    gt_t = torch.tensor(gt, requires_grad=True)
+    target = prepare_target(gt_t)
+    assert isinstance(target, WaveletTarget)
+    tensors = [target.coeffs.approx, *target.coeffs.details, target.kurtosis, target.spread, target.l_cov]
+    assert not any(t.requires_grad for t in tensors)
+    coeffs = dwt2(gt_t.detach())
+    torch.testing.assert_close(target.kurtosis, band_kurtosis(coeffs))
+    torch.testing.assert_close(target.spread, kurtosis_spread(band_kurtosis(coeffs)))
+    torch.testing.assert_close(target.l_cov, covariance_penalty(coeffs))
+
+
+def test_frequency_loss_cached_target_equals_image_target_and_functions(heavy_tailed_pair):
+    pred, gt = (torch.tensor(a) for a in heavy_tailed_pair)
+    loss = FrequencyLoss(wavelet_weight=0.5, kc_weight=0.25, cbc_weight=2.0)
+    from_image = loss(pred, gt)
+    from_cache = loss(pred, loss.prepare_target(gt))
+    assert set(from_image) == {"wavelet_loss", "kc_loss", "cbc_loss"}
+    for key in from_image:
+        torch.testing.assert_close(from_image[key], from_cache[key], rtol=0, atol=0)
+    torch.testing.assert_close(from_image["wavelet_loss"], 0.5 * wavelet_l1(pred, gt))
+    torch.testing.assert_close(from_image["kc_loss"], 0.25 * kc_loss(pred, gt))
+    torch.testing.assert_close(from_image["cbc_loss"], 2.0 * cbc_loss(pred, gt))
+
+
+@pytest.mark.parametrize(
+    "weights,keys",
+    [
+        ((1e-3, 1e-5, 1e-2), {"wavelet_loss", "kc_loss", "cbc_loss"}),
+        ((1e-3, 0.0, 0.0), {"wavelet_loss"}),
+        ((0.0, 1e-5, 0.0), {"kc_loss"}),
+        ((0.0, 0.0, 1e-2), {"cbc_loss"}),
+        ((0.0, 0.0, 0.0), set()),
+    ],
+)
+def test_frequency_loss_returns_only_active_terms(weights, keys):
+    loss = FrequencyLoss(*weights)
+    assert loss.active == bool(keys)
+    out = loss(torch.rand(1, 3, 64, 64), torch.rand(1, 3, 64, 64))
+    assert set(out) == keys
+
+
+def test_frequency_loss_unsupervised_and_correlation_options(heavy_tailed_pair):
+    pred, gt = (torch.tensor(a) for a in heavy_tailed_pair)
+    loss = FrequencyLoss(0.0, 1.0, 1.0, kc_supervised=False, cbc_supervised=False, cbc_correlation=True)
+    out = loss(pred, gt)
+    torch.testing.assert_close(out["kc_loss"], kc_loss(pred, supervised=False))
+    torch.testing.assert_close(out["cbc_loss"], cbc_loss(pred, supervised=False, correlation=True))
+
+
+def test_frequency_loss_weighting_option(heavy_tailed_pair):
+    pred, gt = (torch.tensor(a) for a in heavy_tailed_pair)
+    for weighting in ("paper", "fine", "uniform"):
+        out = FrequencyLoss(1.0, 0.0, 0.0, weighting=weighting)(pred, gt)
+        torch.testing.assert_close(out["wavelet_loss"], wavelet_l1(pred, gt, weighting=weighting))
+
+
+def test_target_with_other_settings_is_refused():
+    gt = torch.rand(1, 3, 64, 64)
+    target = FrequencyLoss(mode="zero").prepare_target(gt)
+    with pytest.raises(ValueError, match="prepare the target"):
+        FrequencyLoss(mode="symmetric")(torch.rand(1, 3, 64, 64), target)
+    with pytest.raises(ValueError, match="same"):
+        FrequencyLoss()(torch.rand(1, 3, 64, 32), FrequencyLoss().prepare_target(gt))
+
+
+def test_frequency_loss_falls_when_optimized(castle_p30):
+    gt = load_image(castle_p30).float()
+    pred = blur(gt, sigma=2.0).clone().requires_grad_(True)
+    loss = FrequencyLoss(wavelet_weight=1.0, kc_weight=1e-2, cbc_weight=1e3)
+    target = loss.prepare_target(gt)
+    optimizer = torch.optim.Adam([pred], lr=1e-2)
+    history = []
+    for _ in range(60):
+        terms = loss(pred, target)
+        total = sum(terms.values())
+        history.append({k: float(v.detach()) for k, v in terms.items()})
+        optimizer.zero_grad()
+        total.backward()
+        optimizer.step()
+    for key in ("wavelet_loss", "kc_loss", "cbc_loss"):
+        assert history[-1][key] < 0.75 * history[0][key], (key, history[0][key], history[-1][key])
+
+
+def test_symmetric_padding_keeps_boundary_artifacts_out_of_blurred_kurtosis(castle_p30):
+    # zero / periodization padding put a step at the border; on a blurred photo those border coefficients dominate
+    # the finest bands and inflate their kurtosis, symmetric extension does not (docs/losses.md, padding table)
+    blurred = blur(load_image(castle_p30), 1.5)
+    finest = {mode: band_kurtosis(dwt2(blurred, mode=mode))[..., :3] for mode in ("symmetric", "zero", "periodization")}
+    assert bool((finest["zero"] > 2 * finest["symmetric"]).all())
+    assert bool((finest["periodization"] > 2 * finest["symmetric"]).all())
+
+
+def test_band_kurtosis_for_logging_layouts(castle_p30):
+    image = load_image(castle_p30).float()
+    expected = band_kurtosis(dwt2(image)).mean(dim=(0, 1)).tolist()
+    from_bchw = band_kurtosis_for_logging(image)
+    from_hwc = band_kurtosis_for_logging(image[0].permute(1, 2, 0))
+    from_target = FrequencyLoss().band_kurtosis_for_logging(FrequencyLoss().prepare_target(image))
+    assert len(from_bchw) == 9
+    np.testing.assert_allclose(from_bchw, expected, rtol=1e-6)
+    np.testing.assert_allclose(from_hwc, expected, rtol=1e-6)
+    np.testing.assert_allclose(from_target, expected, rtol=1e-6)

@@ -1,0 +1,101 @@
+"""Photometric terms against independent numpy / scipy implementations."""
+
+import numpy as np
+import pytest
+import scipy.ndimage
+import torch
+
+from kc_splatfacto.losses import dssim, l1, psnr, ssim
+
+
+def reference_ssim(x: np.ndarray, y: np.ndarray, window: int = 11, sigma: float = 1.5) -> float:
+    """Wang et al. SSIM, Gaussian window, mirror ('reflect' in torch) borders, data range 1, mean over everything."""
+    radius = window // 2
+    taps = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
+    taps /= taps.sum()
+
+    def smooth(a):
+        out = scipy.ndimage.correlate1d(a, taps, axis=-1, mode="mirror")
+        return scipy.ndimage.correlate1d(out, taps, axis=-2, mode="mirror")
+
+    c1, c2 = 0.01**2, 0.03**2
+    mu_x, mu_y = smooth(x), smooth(y)
+    var_x = smooth(x * x) - mu_x**2
+    var_y = smooth(y * y) - mu_y**2
+    cov = smooth(x * y) - mu_x * mu_y
+    ssim_map = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))
+    return float(ssim_map.mean())
+
+
+@pytest.fixture
+def image_pair():
+    rng = np.random.default_rng(3)
+    gt = rng.random((2, 3, 40, 33))
+    pred = np.clip(gt + 0.1 * rng.standard_normal(gt.shape), 0, 1)
+    return pred, gt
+
+
+def test_ssim_matches_reference(image_pair):
+    pred, gt = image_pair
+    ours = ssim(torch.tensor(pred), torch.tensor(gt))
+    assert ours.dim() == 0
+    np.testing.assert_allclose(float(ours), reference_ssim(pred, gt), rtol=1e-6)
+
+
+def test_ssim_on_real_photo(castle_p30):
+    from PIL import Image
+
+    with Image.open(castle_p30 / "images" / "0000.jpg") as img:
+        gt = np.asarray(img.convert("RGB").resize((128, 96)), dtype=np.float32).transpose(2, 0, 1)[None] / 255.0
+    pred = scipy.ndimage.uniform_filter(gt, size=(1, 1, 3, 3), mode="mirror")
+    ours = float(ssim(torch.tensor(pred), torch.tensor(gt)))
+    np.testing.assert_allclose(ours, reference_ssim(pred.astype(np.float64), gt.astype(np.float64)), rtol=1e-4)
+    assert 0.3 < ours < 0.99
+
+
+def test_dssim_is_one_minus_ssim_not_kornia_loss(image_pair):
+    from kornia.losses import ssim_loss
+
+    pred, gt = (torch.tensor(a) for a in image_pair)
+    torch.testing.assert_close(dssim(pred, gt), 1 - ssim(pred, gt))
+    # kornia's ssim_loss is (1 - SSIM) / 2: half of Splatfacto's term
+    torch.testing.assert_close(ssim_loss(pred, gt, 11), dssim(pred, gt) / 2)
+
+
+def test_ssim_of_identical_images_is_one(image_pair):
+    _, gt = image_pair
+    np.testing.assert_allclose(float(ssim(torch.tensor(gt), torch.tensor(gt))), 1.0, atol=1e-9)
+
+
+def test_psnr_matches_numpy(image_pair):
+    pred, gt = image_pair
+    expected = 10 * np.log10(1.0 / np.mean((pred - gt) ** 2))
+    np.testing.assert_allclose(float(psnr(torch.tensor(pred), torch.tensor(gt))), expected, rtol=1e-6)
+    assert float(psnr(torch.tensor(gt), torch.tensor(gt))) == float("inf")
+
+
+def test_l1_matches_numpy_and_has_gradient(image_pair):
+    pred, gt = image_pair
+    pred_t = torch.tensor(pred, requires_grad=True)
+    loss = l1(pred_t, torch.tensor(gt))
+    np.testing.assert_allclose(float(loss.detach()), np.mean(np.abs(pred - gt)), rtol=1e-12)
+    loss.backward()
+    np.testing.assert_allclose(pred_t.grad.numpy(), np.sign(pred - gt) / pred.size, rtol=1e-12)
+
+
+def test_ssim_is_differentiable_and_gradient_matches_finite_difference():
+    torch.manual_seed(0)
+    pred = torch.rand(1, 1, 16, 16, dtype=torch.float64, requires_grad=True)
+    gt = torch.rand(1, 1, 16, 16, dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda p: dssim(p, gt), (pred,), eps=1e-6, atol=1e-7)
+
+
+@pytest.mark.parametrize("fn", [l1, ssim, dssim, psnr])
+def test_shape_mismatch_raises(fn):
+    with pytest.raises(ValueError, match="same shape"):
+        fn(torch.rand(1, 3, 32, 32), torch.rand(1, 3, 32, 31))
+
+
+def test_ssim_too_small_image_raises():
+    with pytest.raises(ValueError, match="too small"):
+        ssim(torch.rand(1, 3, 5, 40), torch.rand(1, 3, 5, 40))

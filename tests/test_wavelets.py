@@ -1,0 +1,155 @@
+"""dwt2 against PyWavelets (filters, coefficients in every mode and size), gradients, level dropping, dtypes."""
+
+import warnings
+
+import numpy as np
+import pytest
+import pywt
+import torch
+
+from kc_splatfacto.losses.wavelets import MODES, daubechies_filters, dwt2, dwt_max_level
+
+SIZES = [(1, 1), (7, 5), (64, 64), (255, 257)]
+WAVES = ["db1", "db3", "db6"]
+
+
+@pytest.mark.parametrize("order", range(1, 11))
+def test_filters_match_pywt(order):
+    dec_lo, dec_hi = daubechies_filters(f"db{order}")
+    reference = pywt.Wavelet(f"db{order}")
+    np.testing.assert_allclose(dec_lo, reference.dec_lo, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(dec_hi, reference.dec_hi, rtol=0, atol=1e-12)
+
+
+def test_haar_alias_is_db1():
+    for ours, theirs in zip(daubechies_filters("haar"), daubechies_filters("db1")):
+        np.testing.assert_array_equal(ours, theirs)
+
+
+@pytest.mark.parametrize("length", [1, 2, 5, 6, 7, 20, 64, 255, 1000])
+@pytest.mark.parametrize("filter_len", [2, 6, 12])
+def test_max_level_rule_matches_pywt(length, filter_len):
+    assert dwt_max_level(length, filter_len) == pywt.dwt_max_level(length, filter_len)
+
+
+def _pywt_reference(images: np.ndarray, wave: str, mode: str, levels: int):
+    """pywt.wavedec2 per image/channel, rearranged into (approx [B,C,h,w], details finest first [B,C,3,h,w])."""
+    batch, channels = images.shape[:2]
+    per = [[pywt.wavedec2(images[b, c], wave, mode=mode, level=levels) for c in range(channels)] for b in range(batch)]
+    approx = np.stack([np.stack([per[b][c][0] for c in range(channels)]) for b in range(batch)])
+    details = []
+    for j in range(1, levels + 1):
+        level = [[np.stack(per[b][c][-j]) for c in range(channels)] for b in range(batch)]
+        details.append(np.stack([np.stack(row) for row in level]))
+    return approx, details
+
+
+@pytest.mark.parametrize("size", SIZES, ids=lambda s: f"{s[0]}x{s[1]}")
+@pytest.mark.parametrize("mode", MODES)
+@pytest.mark.parametrize("wave", WAVES)
+@pytest.mark.parametrize("dtype,atol", [(torch.float32, 1e-5), (torch.float64, 1e-10)], ids=["f32", "f64"])
+def test_coefficients_match_pywt(wave, mode, size, dtype, atol):
+    rng = np.random.default_rng(hash((wave, mode, size)) % 2**32)
+    images = rng.random((2, 3, *size))  # two images, three channels: checks the batch/channel bookkeeping too
+    requested = 3
+    kept = min(requested, pywt.dwt_max_level(min(size), pywt.Wavelet(wave).dec_len))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        coeffs = dwt2(torch.tensor(images, dtype=dtype), wave=wave, levels=requested, mode=mode)
+    assert len(caught) == (1 if kept < requested else 0)
+    if kept < requested:
+        assert f"{size[0]}x{size[1]}" in str(caught[0].message)
+    assert coeffs.levels == kept
+    approx, details = _pywt_reference(images, wave, mode, kept)
+    assert coeffs.approx.dtype == dtype
+    np.testing.assert_allclose(coeffs.approx.numpy(), approx, rtol=0, atol=atol)
+    for ours, theirs in zip(coeffs.details, details):
+        assert ours.shape == theirs.shape
+        np.testing.assert_allclose(ours.numpy(), theirs, rtol=0, atol=atol)
+
+
+@pytest.mark.parametrize("wave", ["db2", "db4", "db5", "db7", "db8"])
+def test_other_orders_match_pywt(wave):
+    rng = np.random.default_rng(1)
+    image = rng.random((96, 80))
+    levels = pywt.dwt_max_level(80, pywt.Wavelet(wave).dec_len)
+    coeffs = dwt2(torch.tensor(image)[None, None], wave=wave, levels=levels, mode="symmetric")
+    reference = pywt.wavedec2(image, wave, mode="symmetric", level=levels)
+    np.testing.assert_allclose(coeffs.approx[0, 0].numpy(), reference[0], atol=1e-10, rtol=0)
+    for j in range(levels):
+        np.testing.assert_allclose(coeffs.details[j][0, 0].numpy(), np.stack(reference[-1 - j]), atol=1e-10, rtol=0)
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_gradcheck_float64(mode):
+    torch.manual_seed(0)
+    image = torch.rand(1, 2, 21, 20, dtype=torch.float64, requires_grad=True)
+
+    def flat(x):
+        coeffs = dwt2(x, wave="db3", levels=2, mode=mode)
+        return torch.cat([coeffs.approx.flatten()] + [d.flatten() for d in coeffs.details])
+
+    assert torch.autograd.gradcheck(flat, (image,), eps=1e-6, atol=1e-8)
+
+
+def test_levels_dropped_warns_once_and_names_size():
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        coeffs = dwt2(torch.rand(1, 3, 12, 40), wave="db3", levels=3)
+    assert coeffs.levels == 1  # pywt.dwt_max_level(12, 6) == 1
+    assert len(caught) == 1 and "12x40" in str(caught[0].message)
+
+
+def test_no_level_left_returns_image_as_approx():
+    image = torch.rand(2, 3, 1, 1)
+    with pytest.warns(UserWarning, match="1x1"):
+        coeffs = dwt2(image)
+    assert coeffs.levels == 0
+    torch.testing.assert_close(coeffs.approx, image, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("half", [torch.float16, torch.bfloat16])
+def test_half_inputs_are_transformed_in_float32(half):
+    image = torch.rand(1, 3, 64, 64)
+    low = image.to(half)
+    coeffs = dwt2(low)
+    reference = dwt2(low.float())
+    assert coeffs.approx.dtype == torch.float32
+    for ours, ref in zip(coeffs.details + [coeffs.approx], reference.details + [reference.approx]):
+        torch.testing.assert_close(ours, ref, rtol=0, atol=0)
+
+
+def test_orthogonal_transform_preserves_energy_in_periodization():
+    image = torch.rand(1, 1, 64, 64, dtype=torch.float64)  # periodization + orthogonal filters: Parseval holds exactly
+    coeffs = dwt2(image, wave="db3", levels=3, mode="periodization")
+    energy = coeffs.approx.square().sum() + sum(d.square().sum() for d in coeffs.details)
+    torch.testing.assert_close(energy, image.square().sum(), rtol=1e-12, atol=0)
+
+
+def test_meta_device_shapes():
+    coeffs = dwt2(torch.empty(2, 3, 256, 256, device="meta"), levels=3)
+    assert coeffs.approx.device.type == "meta"
+    assert [tuple(d.shape) for d in coeffs.details] == [(2, 3, 3, 130, 130), (2, 3, 3, 67, 67), (2, 3, 3, 36, 36)]
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_matches_cpu():
+    image = torch.rand(1, 3, 128, 96)
+    cpu = dwt2(image)
+    gpu = dwt2(image.cuda())
+    for ours, ref in zip(gpu.details + [gpu.approx], cpu.details + [cpu.approx]):
+        torch.testing.assert_close(ours.cpu(), ref, rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [({"wave": "sym4"}, "unknown wavelet"), ({"mode": "smooth"}, "unknown mode"), ({"levels": -1}, "levels")],
+)
+def test_bad_arguments_raise(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        dwt2(torch.rand(1, 1, 32, 32), **kwargs)
+
+
+def test_bad_shape_raises():
+    with pytest.raises(ValueError, match=r"\[B, C, H, W\]"):
+        dwt2(torch.rand(32, 32))
