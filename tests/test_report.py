@@ -104,3 +104,44 @@ def test_bad_logs(tmp_path):
         report.eval_rows([{"kind": "eval", "step": 1}], "s", "m", 0)
     with pytest.raises(ValueError, match="no evaluation rows"):
         report.write_report([], tmp_path / "out")
+
+
+def test_bench_two_methods_one_seed_demo(tmp_path):
+    """kc-bench end to end on the demo scene: one curve per method, monotone times, decodable plots."""
+    from kc_splatfacto.cli import bench
+
+    out = tmp_path / "bench"
+    argv = ["--data", "demo", "--methods", "splatfacto", "kc-splatfacto", "--seeds", "0",
+            "--max-num-iterations", "12", "--num-evals", "3", "--output-dir", str(out)]
+    assert bench.entrypoint(argv) == 0
+    rows = report.read_rows_csv(out / "evals.csv")
+    assert {r["method"] for r in rows} == {"splatfacto", "kc-splatfacto"}
+    for metric in ("psnr", "ssim"):
+        curves = report.aggregate_curves(rows, metric)
+        assert sorted(c.method for c in curves) == ["kc-splatfacto", "splatfacto"]
+        for curve in curves:
+            assert curve.num_seeds == 1 and curve.steps.tolist() == list(bench.log_spaced_steps(12, 3))
+            assert np.all(np.diff(curve.time) > 0), f"{curve.method}: training time not increasing {curve.time}"
+            assert np.isfinite(curve.mean).all()
+        image = cv2.imread(str(out / f"{metric}_vs_time.png"), cv2.IMREAD_COLOR)
+        assert image is not None and image.std() > 0
+    for method in ("splatfacto", "kc-splatfacto"):
+        mine = sorted((r for r in rows if r["method"] == method), key=lambda r: r["step"])
+        assert np.all(np.diff([r["elapsed_s"] for r in mine]) > 0)
+        assert all(r["elapsed_s"] >= r["train_s"] for r in mine)  # wall clock includes the evaluations
+    table = (out / "results.md").read_text()
+    assert "splatfacto (baseline)" in table and "| kc-splatfacto |" in table
+    assert (out / "command.txt").read_text().startswith("kc-bench --data demo")
+    assert not (out / "lpips_vs_time.png").exists()
+
+
+def test_log_spaced_steps():
+    from kc_splatfacto.cli import bench
+
+    steps = bench.log_spaced_steps(1000, 7)
+    assert steps[0] == 1 and steps[-1] == 1000 and list(steps) == sorted(set(steps))
+    ratios = np.diff(np.log(steps))
+    assert ratios.max() / ratios.min() < 1.2  # geometric spacing
+    assert bench.log_spaced_steps(3, 10) == (1, 2, 3)
+    with pytest.raises(ValueError):
+        bench.log_spaced_steps(0, 3)
