@@ -1,0 +1,480 @@
+"""COLMAP scenes: ``images/`` + a sparse model (``.bin`` or ``.txt``, read with pycolmap).
+
+Layout::
+
+    <scene>/images/            the images the model was built from (names as in images.txt, sub-folders allowed)
+    <scene>/sparse/0/          cameras, images, points3D (.bin or .txt); also found at colmap/sparse/0 or sparse/
+
+Splits (``eval_mode``, nerfstudio's names and rules, images sorted by name):
+``interval`` every ``eval_interval``-th image (index % 8 == 0) is eval, the rest train (the default);
+``fraction`` ``ceil(n * train_split_fraction)`` images evenly spaced over the sorted list train, the rest eval;
+``filename`` names containing "train" are train, names containing "eval" are eval (others are an error);
+``all`` every image in both splits. "val" and "test" are the same eval split.
+
+Camera models PINHOLE, SIMPLE_PINHOLE, SIMPLE_RADIAL, RADIAL and OPENCV are supported; images of distorted models are
+undistorted once with OpenCV (``getOptimalNewCameraMatrix`` with alpha 0, cropped to the valid region, as nerfstudio)
+into a cached folder, so every camera handed on is a plain pinhole.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from kc_splatfacto.data.base import (
+    COLMAP_APPLIED_TRANSFORM,
+    DataParser,
+    DataParserConfig,
+    DataParserError,
+    PoseNormalization,
+    make_cameras,
+    normalize_poses,
+    scene_scale_of,
+)
+from kc_splatfacto.data.images import derived_root, downscaled_paths, image_size, read_image, write_image_atomic
+from kc_splatfacto.data.outputs import DataparserOutputs
+
+MODEL_FILES = ("cameras", "images", "points3D")
+# COLMAP model folders tried in order when none is configured (nerfstudio's default is colmap/sparse/0).
+DEFAULT_MODEL_DIRS = ("sparse/0", "colmap/sparse/0", "sparse")
+# Distortion of the supported models is kept in OpenCV's (k1, k2, p1, p2, k3) order.
+SUPPORTED_CAMERA_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+EVAL_MODES = ("interval", "fraction", "filename", "all")
+
+
+@dataclass
+class ColmapCamera:
+    """One COLMAP camera as a pinhole plus OpenCV distortion.
+
+    Attributes:
+        model: COLMAP model name.
+        width, height: image size in pixels.
+        fx, fy, cx, cy: intrinsics, pixel centres at +0.5 (COLMAP's convention).
+        distortion: [5] OpenCV (k1, k2, p1, p2, k3), zeros for pinhole models.
+    """
+
+    model: str
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    distortion: np.ndarray
+
+    @property
+    def is_distorted(self) -> bool:
+        return bool(np.any(self.distortion != 0.0))
+
+
+@dataclass
+class ColmapImage:
+    """One registered image: its name (relative to the image folder), camera id and world-to-camera [4,4]."""
+
+    name: str
+    camera_id: int
+    world_to_camera: np.ndarray
+
+
+@dataclass
+class ColmapModel:
+    """What the parsers use from a COLMAP reconstruction.
+
+    Attributes:
+        path: the model folder.
+        cameras: camera id -> :class:`ColmapCamera`.
+        images: registered images sorted by name.
+        points_xyz: [M,3] float64 world points; points_rgb: [M,3] uint8 colours.
+    """
+
+    path: Path
+    cameras: dict[int, ColmapCamera]
+    images: list[ColmapImage]
+    points_xyz: np.ndarray
+    points_rgb: np.ndarray
+    by_name: dict[str, ColmapImage] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.by_name = {image.name: image for image in self.images}
+
+
+def find_model_dir(scene: Path, configured: Path | None, candidates: tuple[str, ...] = DEFAULT_MODEL_DIRS) -> Path:
+    """The COLMAP model folder of ``scene``: ``configured`` (relative to the scene) or the first candidate holding one."""
+    if configured is not None:
+        path = configured if Path(configured).is_absolute() else scene / configured
+        if not has_model(path):
+            raise DataParserError(
+                f"no COLMAP model in {path}: expected cameras/images/points3D as .bin or .txt there "
+                "(set colmap_path to the folder holding them)"
+            )
+        return path
+    for candidate in candidates:
+        if has_model(scene / candidate):
+            return scene / candidate
+    raise DataParserError(
+        f"no COLMAP model found in {scene}: looked for cameras/images/points3D (.bin or .txt) in "
+        f"{', '.join(candidates)}; run COLMAP or set colmap_path"
+    )
+
+
+def has_model(folder: Path) -> bool:
+    """Whether ``folder`` holds cameras and images files of a COLMAP model (binary or text)."""
+    return any(all((folder / f"{name}{ext}").is_file() for name in ("cameras", "images")) for ext in (".bin", ".txt"))
+
+
+def _camera_from_pycolmap(camera_id: int, camera, model_dir: Path) -> ColmapCamera:
+    model = camera.model.name if hasattr(camera.model, "name") else str(camera.model)
+    p = [float(v) for v in camera.params]
+    zero = np.zeros(5)
+    if model == "PINHOLE":
+        fx, fy, cx, cy = p
+        dist = zero
+    elif model == "SIMPLE_PINHOLE":
+        fx = fy = p[0]
+        cx, cy = p[1], p[2]
+        dist = zero
+    elif model == "SIMPLE_RADIAL":
+        fx = fy = p[0]
+        cx, cy = p[1], p[2]
+        dist = np.array([p[3], 0.0, 0.0, 0.0, 0.0])
+    elif model == "RADIAL":
+        fx = fy = p[0]
+        cx, cy = p[1], p[2]
+        dist = np.array([p[3], p[4], 0.0, 0.0, 0.0])
+    elif model == "OPENCV":
+        fx, fy, cx, cy = p[:4]
+        dist = np.array([*p[4:8], 0.0])
+    else:
+        raise DataParserError(
+            f"camera {camera_id} in {model_dir} uses the COLMAP camera model {model}, which is not supported: "
+            f"supported models are {', '.join(SUPPORTED_CAMERA_MODELS)} (re-run COLMAP with one of them, "
+            "or undistort the images with `colmap image_undistorter` first)"
+        )
+    values = np.array([fx, fy, cx, cy, *dist], np.float64)
+    if not np.isfinite(values).all() or fx <= 0 or fy <= 0:
+        raise DataParserError(f"camera {camera_id} in {model_dir} has invalid parameters {p}: fix the camera file")
+    return ColmapCamera(model, int(camera.width), int(camera.height), fx, fy, cx, cy, dist)
+
+
+def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
+    """Read a COLMAP model (binary or text) with pycolmap; clear errors for unsupported cameras and NaN poses."""
+    try:
+        import pycolmap
+    except ImportError as exc:  # a declared dependency; the message says how to get it back
+        raise ImportError("reading COLMAP models needs pycolmap: pip install pycolmap") from exc
+    try:
+        reconstruction = pycolmap.Reconstruction(str(model_dir))
+    except Exception as exc:
+        raise DataParserError(f"could not read the COLMAP model in {model_dir}: {exc}") from exc
+    cameras = {cid: _camera_from_pycolmap(cid, cam, model_dir) for cid, cam in reconstruction.cameras.items()}
+    images = []
+    for image in reconstruction.images.values():
+        pose = image.cam_from_world() if callable(image.cam_from_world) else image.cam_from_world
+        w2c = np.eye(4)
+        w2c[:3, :4] = np.asarray(pose.matrix(), np.float64)
+        if not np.isfinite(w2c).all():
+            raise DataParserError(f"the pose of image '{image.name}' in {model_dir} contains NaN/inf: fix images.txt/.bin")
+        if image.camera_id not in cameras:
+            raise DataParserError(f"image '{image.name}' in {model_dir} names unknown camera {image.camera_id}")
+        images.append(ColmapImage(image.name, int(image.camera_id), w2c))
+    images.sort(key=lambda im: im.name)
+    if load_points and len(reconstruction.points3D) > 0:
+        points = list(reconstruction.points3D.values())
+        xyz = np.array([p.xyz for p in points], np.float64).reshape(-1, 3)
+        rgb = np.array([p.color for p in points], np.uint8).reshape(-1, 3)
+        finite = np.isfinite(xyz).all(axis=1)
+        if not finite.all():
+            warnings.warn(f"{model_dir}: {int((~finite).sum())} 3D points with NaN/inf coordinates were left out")
+            xyz, rgb = xyz[finite], rgb[finite]
+    else:
+        xyz, rgb = np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
+    return ColmapModel(model_dir, cameras, images, xyz, rgb)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Undistortion
+# ----------------------------------------------------------------------------------------------------------------
+
+def undistorted_pinhole(camera: ColmapCamera) -> tuple[np.ndarray, tuple[int, int, int, int]]:
+    """The pinhole that OpenCV undistorts ``camera`` into, and the valid-pixel crop.
+
+    Returns:
+        (new_k [3,3] for the full frame, roi (x, y, w, h)); pixel centres at +0.5 like COLMAP.
+    """
+    import cv2
+
+    k_cv = _k_opencv(camera)
+    new_k, roi = cv2.getOptimalNewCameraMatrix(k_cv, camera.distortion, (camera.width, camera.height), 0)
+    x, y, w, h = (int(v) for v in roi)
+    if w <= 0 or h <= 0:
+        raise DataParserError(
+            f"undistorting a {camera.model} camera with distortion {camera.distortion.tolist()} leaves no valid pixels: "
+            "check the camera parameters"
+        )
+    new_k = np.asarray(new_k, np.float64).copy()
+    new_k[0, 2] += 0.5 - x
+    new_k[1, 2] += 0.5 - y
+    return new_k, (x, y, w, h)
+
+
+def _k_opencv(camera: ColmapCamera) -> np.ndarray:
+    """OpenCV puts pixel centres at integer coordinates: shift the principal point by -0.5 for its functions."""
+    return np.array([[camera.fx, 0.0, camera.cx - 0.5], [0.0, camera.fy, camera.cy - 0.5], [0.0, 0.0, 1.0]])
+
+
+def undistort_image(image: np.ndarray, camera: ColmapCamera) -> np.ndarray:
+    """[H,W,C] image of a distorted ``camera`` -> cropped pinhole image of :func:`undistorted_pinhole`."""
+    import cv2
+
+    new_k, (x, y, w, h) = undistorted_pinhole(camera)
+    new_k_cv = new_k.copy()
+    new_k_cv[0, 2] += x - 0.5
+    new_k_cv[1, 2] += y - 0.5
+    out = cv2.undistort(image, _k_opencv(camera), camera.distortion, None, new_k_cv)
+    return np.ascontiguousarray(out[y : y + h, x : x + w])
+
+
+def undistorted_paths(
+    image_paths: list[Path], cameras: list[ColmapCamera], images_dir: Path, cache_dir: Path | None
+) -> tuple[list[Path], Path]:
+    """Undistorted copies of distorted images (created once, reused), and the folder holding them.
+
+    The folder name carries a hash of the camera parameters, so an edited model never reuses stale images.
+    """
+    params = sorted({(c.model, c.width, c.height, c.fx, c.fy, c.cx, c.cy, *c.distortion.tolist()) for c in cameras})
+    digest = hashlib.sha1(json.dumps(params).encode()).hexdigest()[:8]
+    folder = derived_root(images_dir, cache_dir) / f"{images_dir.name}_undistorted_{digest}"
+    out = []
+    for path, camera in zip(image_paths, cameras):
+        relative = Path(path).relative_to(images_dir)
+        # Undistorted copies are lossless PNGs: a JPEG round trip would add artefacts to the training targets.
+        target = folder / relative.with_suffix(".png")
+        if camera.is_distorted and not target.exists():
+            write_image_atomic(target, undistort_image(read_image(path), camera))
+        out.append(target if camera.is_distorted else Path(path))
+    return out, folder
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Shared assembly for COLMAP-based parsers (COLMAP, SPARS3R)
+# ----------------------------------------------------------------------------------------------------------------
+
+def check_image_sizes(paths: list[Path], cameras: list[ColmapCamera], camera_names: list[str]) -> None:
+    """Each image must have its camera's size; names the first offender."""
+    for path, camera, camera_name in zip(paths, cameras, camera_names):
+        width, height = image_size(path)
+        if (width, height) != (camera.width, camera.height):
+            raise DataParserError(
+                f"image {path} is {width}x{height} but its {camera_name} is {camera.width}x{camera.height}: "
+                "images of one camera must all have the camera's size (use the images the cameras were calibrated on)"
+            )
+
+
+def pinhole_images(
+    config: DataParserConfig, paths: list[Path], cameras: list[ColmapCamera], images_dirs: list[Path], metadata: dict
+) -> tuple[list[Path], np.ndarray, np.ndarray]:
+    """Undistort (distorted cameras) then downscale the split's images, with matching pinhole intrinsics.
+
+    Args:
+        paths: [N] image files; cameras: [N] their cameras; images_dirs: [N] the folder each path is relative to
+            (derived copies keep that relative path).
+    Returns:
+        (image paths to load, [N,4] fx, fy, cx, cy, [N,2] width, height).
+    """
+    intrinsics, sizes, out_paths = [], [], []
+    for path, camera, images_dir in zip(paths, cameras, images_dirs):
+        if camera.is_distorted:
+            new_k, (_, _, w, h) = undistorted_pinhole(camera)
+            intrinsics.append([new_k[0, 0], new_k[1, 1], new_k[0, 2], new_k[1, 2]])
+            sizes.append((w, h))
+            undistorted, folder = undistorted_paths([path], [camera], images_dir, config.cache_dir)
+            if folder not in metadata.setdefault("undistorted_dirs", []):
+                metadata["undistorted_dirs"].append(folder)
+            path, images_dir = undistorted[0], folder
+        else:
+            intrinsics.append([camera.fx, camera.fy, camera.cx, camera.cy])
+            sizes.append((camera.width, camera.height))
+        if config.downscale_factor > 1:
+            path = downscaled_paths([path], images_dir, config.downscale_factor, config.cache_dir)[0]
+        out_paths.append(path)
+    intrinsics = np.asarray(intrinsics, np.float64).reshape(-1, 4)
+    sizes = np.asarray(sizes, np.int64).reshape(-1, 2)
+    if config.downscale_factor > 1:
+        intrinsics, sizes = scale_intrinsics(intrinsics, sizes, config.downscale_factor)
+    return out_paths, intrinsics, sizes
+
+
+def colmap_split_outputs(
+    config: DataParserConfig,
+    model: ColmapModel,
+    images_dir: Path,
+    normalize_names: list[str],
+    split_names: list[str],
+    split: str,
+    load_points: bool,
+    metadata: dict,
+) -> DataparserOutputs:
+    """Normalize on ``normalize_names`` (train + eval), then build the outputs of ``split_names``.
+
+    Only the split's images are checked, undistorted and downscaled.
+    """
+    if not split_names:
+        raise DataParserError(
+            f"split '{split}' of {config.data} is empty: check the split lists / eval mode of {type(config).__name__}"
+        )
+    missing = [name for name in split_names if not (images_dir / name).is_file()]
+    if missing:
+        raise DataParserError(
+            f"{len(missing)} image(s) of split '{split}' are missing from {images_dir}: {', '.join(missing[:10])}"
+            f"{' ...' if len(missing) > 10 else ''} (add the files or remove them from the model / split list)"
+        )
+    c2w_all = np.stack([np.linalg.inv(model.by_name[name].world_to_camera) for name in normalize_names])
+    normalization = normalize_poses(
+        c2w_all,
+        config.orientation_method,
+        config.center_method,
+        config.auto_scale_poses,
+        applied_transform=COLMAP_APPLIED_TRANSFORM,
+    )
+    c2w_normalized_all = normalization.apply_to_c2w(c2w_all)
+    index = {name: i for i, name in enumerate(normalize_names)}
+    c2w = c2w_normalized_all[[index[name] for name in split_names]]
+
+    camera_ids = [model.by_name[name].camera_id for name in split_names]
+    cameras = [model.cameras[cid] for cid in camera_ids]
+    paths = [images_dir / name for name in split_names]
+    check_image_sizes(paths, cameras, [f"COLMAP camera {cid}" for cid in camera_ids])
+    paths, intrinsics, sizes = pinhole_images(config, paths, cameras, [images_dir] * len(paths), metadata)
+
+    outputs = DataparserOutputs(
+        image_filenames=paths,
+        cameras=make_cameras(c2w, intrinsics, sizes[:, 0], sizes[:, 1]),
+        split=split,
+        scene_scale=scene_scale_of(c2w_normalized_all),
+        dataparser_transform=torch.from_numpy(normalization.transform.astype(np.float32)),
+        dataparser_scale=float(normalization.scale),
+        metadata={"normalization": normalization, "image_names": list(split_names), **metadata},
+    )
+    if load_points and len(model.points_xyz) > 0:
+        outputs.points3d_xyz = torch.from_numpy(normalization.apply_to_points(model.points_xyz).astype(np.float32))
+        outputs.points3d_rgb = torch.from_numpy(model.points_rgb.copy())
+    return outputs
+
+
+def scale_intrinsics(intrinsics: np.ndarray, sizes: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray]:
+    """[N,4] (fx, fy, cx, cy) and [N,2] (w, h) for images downscaled by ``factor`` (floor sizes, exact ratios)."""
+    sizes = np.asarray(sizes, np.int64)
+    new_sizes = sizes // factor
+    if (new_sizes < 1).any():
+        raise DataParserError(f"downscale_factor {factor} is too large for the {sizes.min()}-pixel images: use a smaller one")
+    ratio = new_sizes / sizes
+    out = np.asarray(intrinsics, np.float64).copy()
+    out[:, 0] *= ratio[:, 0]
+    out[:, 2] *= ratio[:, 0]
+    out[:, 1] *= ratio[:, 1]
+    out[:, 3] *= ratio[:, 1]
+    return out, new_sizes
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The COLMAP dataparser
+# ----------------------------------------------------------------------------------------------------------------
+
+@dataclass
+class ColmapDataParserConfig(DataParserConfig):
+    """A COLMAP scene: ``images/`` + ``sparse/0/`` (see the module docstring for splits and camera models)."""
+
+    images_path: Path = Path("images")
+    """Image folder, relative to ``data``."""
+    colmap_path: Path | None = None
+    """Model folder relative to ``data``; None tries sparse/0, colmap/sparse/0, sparse."""
+    eval_mode: str = "interval"
+    """"interval", "fraction", "filename" or "all" (nerfstudio's)."""
+    eval_interval: int = 8
+    """Every ``eval_interval``-th image is eval (eval_mode "interval")."""
+    train_split_fraction: float = 0.9
+    """Fraction of images for training (eval_mode "fraction")."""
+    load_3d_points: bool = True
+    """Seed points from points3D."""
+
+    def setup(self) -> "ColmapDataParser":
+        return ColmapDataParser(self)
+
+
+def split_indices(names: list[str], eval_mode: str, eval_interval: int, train_fraction: float) -> tuple[list[int], list[int]]:
+    """(train, eval) indices into the name-sorted ``names`` (nerfstudio's ``get_train_eval_split_*``)."""
+    n = len(names)
+    if eval_mode == "interval":
+        if eval_interval < 1:
+            raise DataParserError(f"eval_interval must be >= 1, got {eval_interval}")
+        return [i for i in range(n) if i % eval_interval != 0], [i for i in range(n) if i % eval_interval == 0]
+    if eval_mode == "fraction":
+        if not 0.0 < train_fraction <= 1.0:
+            raise DataParserError(f"train_split_fraction must be in (0, 1], got {train_fraction}")
+        num_train = math.ceil(n * train_fraction)
+        train = sorted(set(np.linspace(0, n - 1, num_train, dtype=int).tolist()))
+        return train, [i for i in range(n) if i not in set(train)]
+    if eval_mode == "filename":
+        train, evals = [], []
+        for i, name in enumerate(names):
+            base = Path(name).name
+            if "train" in base:
+                train.append(i)
+            elif "eval" in base:
+                evals.append(i)
+            else:
+                raise DataParserError(
+                    f"eval_mode 'filename' needs 'train' or 'eval' in every image name, but '{name}' has neither: "
+                    "rename the images or use eval_mode 'interval'"
+                )
+        return train, evals
+    if eval_mode == "all":
+        return list(range(n)), list(range(n))
+    raise DataParserError(f"unknown eval_mode '{eval_mode}': use one of {', '.join(EVAL_MODES)}")
+
+
+class ColmapDataParser(DataParser):
+    config: ColmapDataParserConfig
+
+    def _generate_dataparser_outputs(self, split: str) -> DataparserOutputs:
+        scene = Path(self.config.data)
+        if not scene.is_dir():
+            raise DataParserError(f"COLMAP scene folder {scene} does not exist: check --data")
+        images_dir = scene / self.config.images_path
+        if not images_dir.is_dir():
+            raise DataParserError(f"image folder {images_dir} does not exist: set images_path to the scene's image folder")
+        model = read_colmap_model(find_model_dir(scene, self.config.colmap_path), load_points=self.config.load_3d_points)
+        if not model.images:
+            raise DataParserError(f"the COLMAP model in {model.path} has no registered images")
+        names = [image.name for image in model.images]
+        train, evals = split_indices(names, self.config.eval_mode, self.config.eval_interval, self.config.train_split_fraction)
+        chosen = train if split == "train" else evals
+        return colmap_split_outputs(
+            self.config,
+            model,
+            images_dir,
+            normalize_names=names,
+            split_names=[names[i] for i in chosen],
+            split=split,
+            load_points=self.config.load_3d_points,
+            metadata={"format": "colmap", "model_dir": model.path, "eval_mode": self.config.eval_mode},
+        )
+
+
+def _spec():
+    from kc_splatfacto.registry import DataParserSpecification
+
+    return DataParserSpecification(
+        config=ColmapDataParserConfig(),
+        description="COLMAP scene: images/ + sparse/0 (.bin or .txt); eval modes interval/fraction/filename/all",
+    )
+
+
+colmap_dataparser = _spec()

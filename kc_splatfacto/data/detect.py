@@ -1,0 +1,56 @@
+"""Which dataparser reads a scene: detection from the folder, or a registered name (``--dataparser NAME``)."""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+from kc_splatfacto.data.base import DataParserConfig, DataParserError
+from kc_splatfacto.data.colmap import DEFAULT_MODEL_DIRS, has_model
+from kc_splatfacto.data.spars3r import is_spars3r_scene
+from kc_splatfacto.registry import discover_dataparsers
+
+DEMO_NAME = "demo"
+
+
+def detect_format(data: Path) -> str:
+    """Registered dataparser name for the scene at ``data``: "spars3r", "nerfstudio-data" or "colmap".
+
+    Order: split lists + image folder (SPARS3R), then a transforms.json (nerfstudio), then a COLMAP model.
+    """
+    if not data.exists():
+        raise DataParserError(f"scene {data} does not exist: give a scene folder, a transforms.json, or 'demo'")
+    if data.is_file():
+        if data.suffix == ".json":
+            return "nerfstudio-data"
+        raise DataParserError(f"{data} is a file: give the scene folder (or a transforms.json)")
+    if is_spars3r_scene(data):
+        return "spars3r"
+    if (data / "transforms.json").is_file():
+        return "nerfstudio-data"
+    if any(has_model(data / d) for d in DEFAULT_MODEL_DIRS) and (data / "images").is_dir():
+        return "colmap"
+    raise DataParserError(
+        f"cannot tell the format of {data}: expected train_list.txt + test_list.txt + images/ (SPARS3R), "
+        f"transforms.json (nerfstudio), or images/ + sparse/0/ (COLMAP); or force one with --dataparser NAME"
+    )
+
+
+def resolve_dataparser(data: str | Path, name: str | None = None) -> DataParserConfig:
+    """The dataparser config for ``data``: forced by ``name`` (a registered dataparser) or detected.
+
+    ``data == "demo"`` (when no such folder exists) gives the generated demo scene.
+    """
+    specs = discover_dataparsers()
+    path = Path(data)
+    if name is None:
+        name = DEMO_NAME if str(data) == DEMO_NAME and not path.is_dir() else detect_format(path)
+    if name not in specs:
+        raise DataParserError(
+            f"unknown dataparser '{name}': registered ones are {', '.join(specs) or 'none'} "
+            "(is the package installed with `pip install -e .`?)"
+        )
+    config = copy.deepcopy(specs[name].config)
+    if name != DEMO_NAME:
+        config.data = path
+    return config

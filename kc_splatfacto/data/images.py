@@ -1,0 +1,175 @@
+"""Image files: reading (OpenCV), header sizes, and the cached downscaled / undistorted copies.
+
+Derived images are written atomically (temp file + rename) and reused when present, never behind a prompt.
+Pixel convention: pixel ``(i, j)`` covers ``[j, j+1) x [i, i+1)``, centres at +0.5 (COLMAP's and gsplat's), so a
+resize by ``w_new / w`` scales ``fx`` and ``cx`` by exactly that ratio.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import stat
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from kc_splatfacto.data.base import DataParserError, default_cache_dir
+
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".exr")
+# Folder under the user cache for derived images of scenes whose own folder is read-only.
+DERIVED_CACHE_SUBDIR = "derived"
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """Decode an image file to RGB(A).
+
+    Returns:
+        [H, W, 3] or [H, W, 4] uint8 (16-bit files are rounded to 8 bits; float files must hold finite values in
+        [0, 1] and are quantized).
+    """
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise DataParserError(f"image file {path} does not exist: check the scene's image folder")
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None or image.size == 0:
+        raise DataParserError(f"image file {path} is corrupt or not an image OpenCV can read: re-export or remove it")
+    if image.ndim == 2:
+        image = np.repeat(image[:, :, None], 3, axis=2)
+    if image.shape[2] == 4:
+        image = cv2.cvtColor(image, cv2.COLOR_BGRA2RGBA)
+    elif image.shape[2] == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+    else:
+        raise DataParserError(f"image file {path} has {image.shape[2]} channels: expected gray, RGB or RGBA")
+    return to_uint8(image, path)
+
+
+def to_uint8(image: np.ndarray, path: str | Path = "<array>") -> np.ndarray:
+    """uint8 / uint16 / float image -> uint8; non-finite float pixels are an error naming ``path``."""
+    if image.dtype == np.uint8:
+        return image
+    if image.dtype == np.uint16:
+        return np.round(image.astype(np.float32) / 257.0).astype(np.uint8)
+    if np.issubdtype(image.dtype, np.floating):
+        bad = ~np.isfinite(image)
+        if bad.any():
+            raise DataParserError(
+                f"image {path} has {int(bad.sum())} NaN/inf values: fix or re-export the file (expected values in [0,1])"
+            )
+        return np.round(np.clip(image, 0.0, 1.0) * 255.0).astype(np.uint8)
+    raise DataParserError(f"image {path} has unsupported pixel type {image.dtype}: expected 8/16-bit or float")
+
+
+def image_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) of an image file from its header (no full decode); a clear error if unreadable."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataParserError(f"image file {path} does not exist: check the scene's image folder and split lists")
+    try:
+        from PIL import Image
+
+        with Image.open(path) as handle:
+            return int(handle.size[0]), int(handle.size[1])
+    except Exception:  # PIL cannot parse every format OpenCV reads (e.g. EXR): fall back to a full decode
+        image = read_image(path)
+        return int(image.shape[1]), int(image.shape[0])
+
+
+def write_image_atomic(path: Path, image: np.ndarray) -> None:
+    """Write an RGB(A) uint8 image with OpenCV via a temp file + rename (lossless PNG unless the suffix says JPEG)."""
+    import cv2
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if image.ndim == 3 and image.shape[2] == 4:
+        bgr = cv2.cvtColor(image, cv2.COLOR_RGBA2BGRA)
+    elif image.ndim == 3:
+        bgr = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    else:
+        bgr = image
+    suffix = path.suffix.lower() or ".png"
+    params = [cv2.IMWRITE_JPEG_QUALITY, 95] if suffix in (".jpg", ".jpeg") else []
+    ok, encoded = cv2.imencode(suffix, bgr, params)
+    if not ok:
+        raise DataParserError(f"OpenCV could not encode {path} (suffix {suffix})")
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            handle.write(encoded.tobytes())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def folder_is_writable(folder: Path) -> bool:
+    """Whether derived files may go into ``folder``: it allows writes by mode bits and by the OS.
+
+    Mode bits are checked too because a read-only shared scene stays read-only in intent even for root.
+    """
+    try:
+        mode = folder.stat().st_mode
+    except OSError:
+        return False
+    return bool(mode & (stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH)) and os.access(folder, os.W_OK)
+
+
+def derived_root(images_dir: Path, cache_dir: Path | None) -> Path:
+    """Folder that holds ``<images>_N/`` style derived image folders for a scene.
+
+    ``cache_dir`` given: a per-scene subfolder of it. Otherwise the scene folder itself when writable, else a
+    per-scene subfolder of the user cache.
+    """
+    scene = images_dir.resolve().parent
+    if cache_dir is None and folder_is_writable(scene):
+        return scene
+    base = Path(cache_dir) if cache_dir is not None else default_cache_dir() / DERIVED_CACHE_SUBDIR
+    digest = hashlib.sha1(str(scene).encode()).hexdigest()[:10]
+    return base / f"{scene.name}-{digest}"
+
+
+def resized_size(width: int, height: int, factor: int) -> tuple[int, int]:
+    """Size after an integer downscale: floor division, as nerfstudio's ``rescale_output_resolution``."""
+    new_w, new_h = width // factor, height // factor
+    if new_w < 1 or new_h < 1:
+        raise DataParserError(f"downscale_factor {factor} is too large for {width}x{height} images: use a smaller one")
+    return new_w, new_h
+
+
+def downscaled_paths(
+    image_paths: list[Path], images_dir: Path, factor: int, cache_dir: Path | None = None
+) -> list[Path]:
+    """Paths of ``image_paths`` downscaled ``factor`` times (``cv2.INTER_AREA``), creating missing ones.
+
+    Copies live in ``<images_dir name>_<factor>/`` (nerfstudio's layout) under :func:`derived_root`, keep the
+    relative path and the file name, and are reused when present. An existing ``images_N`` shipped next to the
+    images in the scene folder is used as is.
+    """
+    if factor == 1:
+        return list(image_paths)
+    import cv2
+
+    shipped = images_dir.parent / f"{images_dir.name}_{factor}"
+    root = shipped if shipped.is_dir() else derived_root(images_dir, cache_dir) / f"{images_dir.name}_{factor}"
+    out = []
+    for path in image_paths:
+        target = root / Path(path).relative_to(images_dir)
+        if not target.exists():
+            if shipped.is_dir():
+                raise DataParserError(
+                    f"{target} is missing from the scene's downscaled folder {shipped}: add it or delete {shipped} "
+                    "to have it regenerated"
+                )
+            image = read_image(path)
+            new_w, new_h = resized_size(image.shape[1], image.shape[0], factor)
+            write_image_atomic(target, cv2.resize(image, (new_w, new_h), interpolation=cv2.INTER_AREA))
+        out.append(target)
+    return out
+
+
+def list_images(folder: Path) -> list[Path]:
+    """Image files directly in ``folder``, sorted by name."""
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS and p.is_file())

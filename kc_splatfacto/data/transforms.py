@@ -1,0 +1,242 @@
+"""nerfstudio / instant-ngp ``transforms.json`` scenes.
+
+Layout: ``<scene>/transforms.json`` (or ``--data path/to/file.json``), image paths in it relative to its folder::
+
+    {"camera_model": "OPENCV", "fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "p1", "p2",  (global or per frame)
+     "frames": [{"file_path": "images/0001.png", "transform_matrix": 4x4 camera-to-world, OpenGL axes, ...}],
+     "train_filenames": [...], "val_filenames": [...], "test_filenames": [...],   (optional, explicit splits)
+     "ply_file_path": "sparse_pc.ply",                                            (optional seed points)
+     "applied_transform": 3x4, "aabb_scale": ...}                                 (aabb_scale is ignored)
+
+Frames are sorted by file name (nerfstudio). Frames whose image file is missing are listed by name in one warning
+and skipped. Without split lists the split follows ``eval_mode`` like the COLMAP parser; "val" falls back to the test
+list and "test" to the val list when only one is given. Distorted cameras (k1..p2) are undistorted with OpenCV and
+cached; ``camera_model`` other than OPENCV/PINHOLE/SIMPLE_PINHOLE (e.g. fisheye) is an error.
+
+The PLY points and the poses share the file's frame, so both get the normalization computed from the poses. The
+reported ``dataparser_transform`` composes it with ``applied_transform`` (when present), as nerfstudio does: it
+then maps the original capture's world (e.g. the COLMAP model ns-process-data converted) to the normalized world.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from kc_splatfacto.data.base import (
+    DataParser,
+    DataParserConfig,
+    DataParserError,
+    make_cameras,
+    normalize_poses,
+    opencv_to_opengl,
+    scene_scale_of,
+)
+from kc_splatfacto.data.colmap import ColmapCamera, check_image_sizes, pinhole_images, split_indices
+from kc_splatfacto.data.outputs import DataparserOutputs
+
+INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
+DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")  # OpenCV's coefficient order
+SUPPORTED_TRANSFORMS_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "PERSPECTIVE")
+
+
+@dataclass
+class TransformsDataParserConfig(DataParserConfig):
+    """A nerfstudio ``transforms.json`` scene (see the module docstring)."""
+
+    eval_mode: str = "interval"
+    """Split without explicit lists: "interval", "fraction", "filename" or "all" (as the COLMAP parser)."""
+    eval_interval: int = 8
+    train_split_fraction: float = 0.9
+    load_3d_points: bool = True
+    """Seed points from ``ply_file_path`` when the file names one."""
+
+    def setup(self) -> "TransformsDataParser":
+        return TransformsDataParser(self)
+
+
+def load_transforms_json(data: Path) -> tuple[dict, Path, Path]:
+    """(meta, folder the paths are relative to, json path) for a scene folder or a .json file."""
+    json_path = data if data.suffix == ".json" else data / "transforms.json"
+    if not json_path.is_file():
+        raise DataParserError(f"{json_path} does not exist: give a folder holding transforms.json, or the .json file")
+    try:
+        meta = json.loads(json_path.read_text())
+    except json.JSONDecodeError as exc:
+        raise DataParserError(f"{json_path} is not valid JSON: {exc}") from exc
+    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list):
+        raise DataParserError(f"{json_path} has no 'frames' list: not a nerfstudio/instant-ngp transforms file")
+    return meta, json_path.parent, json_path
+
+
+def _frame_value(frame: dict, meta: dict, key: str, json_path: Path, default=None):
+    if key in frame:
+        return frame[key]
+    if key in meta:
+        return meta[key]
+    if default is not None:
+        return default
+    raise DataParserError(
+        f"{json_path}: frame '{frame.get('file_path')}' has no '{key}' and there is no global '{key}': add it"
+    )
+
+
+def frame_camera(frame: dict, meta: dict, json_path: Path) -> ColmapCamera:
+    """The frame's camera (global values overridden per frame) as pinhole + OpenCV distortion."""
+    values = {key: _frame_value(frame, meta, key, json_path) for key in INTRINSIC_KEYS}
+    distortion = np.array([float(_frame_value(frame, meta, key, json_path, 0.0)) for key in DISTORTION_KEYS])
+    camera = ColmapCamera(
+        model=str(_frame_value(frame, meta, "camera_model", json_path, "OPENCV")),
+        width=int(values["w"]),
+        height=int(values["h"]),
+        fx=float(values["fl_x"]),
+        fy=float(values["fl_y"]),
+        cx=float(values["cx"]),
+        cy=float(values["cy"]),
+        distortion=distortion,
+    )
+    if camera.model not in SUPPORTED_TRANSFORMS_MODELS:
+        raise DataParserError(
+            f"{json_path}: camera_model '{camera.model}' (frame '{frame.get('file_path')}') is not supported: use one "
+            f"of {', '.join(SUPPORTED_TRANSFORMS_MODELS)} (undistort fisheye images first)"
+        )
+    if not np.isfinite([camera.fx, camera.fy, camera.cx, camera.cy, *distortion]).all() or camera.fx <= 0:
+        raise DataParserError(f"{json_path}: frame '{frame.get('file_path')}' has invalid intrinsics")
+    return camera
+
+
+def read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """([M,3] float64 xyz, [M,3] uint8 rgb) from a PLY point cloud (grey when it has no colours)."""
+    import trimesh
+
+    if not path.is_file():
+        raise DataParserError(f"ply_file_path {path} does not exist: fix the path in transforms.json or remove it")
+    try:
+        cloud = trimesh.load(str(path), process=False)
+    except Exception as exc:
+        raise DataParserError(f"could not read the point cloud {path}: {exc}") from exc
+    xyz = np.asarray(getattr(cloud, "vertices", np.zeros((0, 3))), np.float64).reshape(-1, 3)
+    colours = getattr(cloud, "colors", None)
+    if colours is None or len(colours) != len(xyz):
+        colours = getattr(getattr(cloud, "visual", None), "vertex_colors", None)
+    rgb = np.asarray(colours, np.uint8)[:, :3] if colours is not None and len(colours) == len(xyz) else None
+    if rgb is None:
+        rgb = np.full((len(xyz), 3), 128, np.uint8)
+    return xyz, rgb
+
+
+class TransformsDataParser(DataParser):
+    config: TransformsDataParserConfig
+
+    def _generate_dataparser_outputs(self, split: str) -> DataparserOutputs:
+        data = Path(self.config.data)
+        if not data.exists():
+            raise DataParserError(f"scene {data} does not exist: check --data")
+        meta, base, json_path = load_transforms_json(data)
+
+        frames, missing = [], []
+        for frame in meta["frames"]:
+            if "file_path" not in frame or "transform_matrix" not in frame:
+                raise DataParserError(f"{json_path}: every frame needs 'file_path' and 'transform_matrix'")
+            path = base / frame["file_path"]
+            if not path.is_file() and path.suffix == "":  # instant-ngp's Blender exports omit the extension
+                path = next((path.with_suffix(s) for s in (".png", ".jpg", ".jpeg") if path.with_suffix(s).is_file()), path)
+            (frames if path.is_file() else missing).append((path, frame))
+        if missing:
+            warnings.warn(
+                f"{json_path}: {len(missing)} frame(s) skipped because their image file is missing: "
+                + ", ".join(str(f["file_path"]) for _, f in missing)
+            )
+        if not frames:
+            raise DataParserError(f"{json_path}: none of the frames' image files exist under {base}")
+        frames.sort(key=lambda item: str(item[0]))
+        paths = [path for path, _ in frames]
+        c2w_gl = np.stack([np.asarray(frame["transform_matrix"], np.float64) for _, frame in frames])
+        if c2w_gl.shape[1:] not in ((4, 4), (3, 4)):
+            raise DataParserError(f"{json_path}: transform_matrix must be 4x4 (or 3x4), got {c2w_gl.shape[1:]}")
+        bad = [str(frames[i][1]["file_path"]) for i in range(len(frames)) if not np.isfinite(c2w_gl[i]).all()]
+        if bad:
+            raise DataParserError(f"{json_path}: transform_matrix of {', '.join(bad)} contains NaN/inf: fix those frames")
+        c2w_cv = opencv_to_opengl(c2w_gl)
+
+        split_lists = {s: meta.get(f"{s}_filenames") for s in ("train", "val", "test")}
+        if any(v is not None for v in split_lists.values()):
+            index_of = {path.resolve(): i for i, path in enumerate(paths)}
+
+            def listed(names: list[str] | None, which: str) -> list[int]:
+                if names is None:
+                    return []
+                idx = []
+                for name in names:
+                    resolved = (base / name).resolve()
+                    if resolved not in index_of:
+                        raise DataParserError(
+                            f"{json_path}: '{name}' in {which}_filenames is not a frame with an existing image: "
+                            "fix the list or add the image"
+                        )
+                    idx.append(index_of[resolved])
+                return idx
+
+            train = listed(split_lists["train"], "train")
+            val = listed(split_lists["val"], "val")
+            test = listed(split_lists["test"], "test")
+            chosen = {"train": train, "val": val or test, "test": test or val}[split]
+            normalize_idx = sorted(set(train) | set(val) | set(test))
+        else:
+            names = [str(p.relative_to(base)) for p in paths]
+            train, evals = split_indices(
+                names, self.config.eval_mode, self.config.eval_interval, self.config.train_split_fraction
+            )
+            chosen = train if split == "train" else evals
+            normalize_idx = list(range(len(paths)))
+        if not chosen:
+            raise DataParserError(f"split '{split}' of {json_path} is empty: check its split lists / eval_mode")
+
+        normalization = normalize_poses(
+            c2w_cv[normalize_idx], self.config.orientation_method, self.config.center_method, self.config.auto_scale_poses
+        )
+        c2w_all = normalization.apply_to_c2w(c2w_cv)
+        cameras = [frame_camera(frames[i][1], meta, json_path) for i in chosen]
+        split_paths = [paths[i] for i in chosen]
+        check_image_sizes(split_paths, cameras, [f"camera in {json_path.name}"] * len(chosen))
+        metadata: dict = {"format": "nerfstudio-data", "skipped_frames": [str(f["file_path"]) for _, f in missing]}
+        split_paths, intrinsics, sizes = pinhole_images(
+            self.config, split_paths, cameras, [p.parent for p in split_paths], metadata
+        )
+
+        transform = normalization.transform
+        if "applied_transform" in meta:
+            applied = np.asarray(meta["applied_transform"], np.float64)
+            applied4 = np.concatenate([applied[:3, :4], [[0.0, 0.0, 0.0, 1.0]]], axis=0)
+            transform = transform @ applied4
+        outputs = DataparserOutputs(
+            image_filenames=split_paths,
+            cameras=make_cameras(c2w_all[chosen], intrinsics, sizes[:, 0], sizes[:, 1]),
+            split=split,
+            scene_scale=scene_scale_of(c2w_all[normalize_idx]),
+            dataparser_transform=torch.from_numpy(transform.astype(np.float32)),
+            dataparser_scale=float(normalization.scale),
+            metadata={"normalization": normalization, "json_path": json_path, **metadata},
+        )
+        if self.config.load_3d_points and "ply_file_path" in meta:
+            xyz, rgb = read_ply_points(base / meta["ply_file_path"])
+            outputs.points3d_xyz = torch.from_numpy(normalization.apply_to_points(xyz).astype(np.float32))
+            outputs.points3d_rgb = torch.from_numpy(rgb.copy())
+        return outputs
+
+
+def _spec():
+    from kc_splatfacto.registry import DataParserSpecification
+
+    return DataParserSpecification(
+        config=TransformsDataParserConfig(),
+        description="nerfstudio / instant-ngp transforms.json (OpenGL camera-to-world, optional split lists and PLY)",
+    )
+
+
+nerfstudio_dataparser = _spec()
