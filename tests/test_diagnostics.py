@@ -76,3 +76,17 @@ def test_bad_inputs():
         diagnostics.wavelet_pixel_error_ratio(bad, torch.zeros(8, 8, 3), levels=1)
     with pytest.raises(ValueError, match="H,W,3"):
         diagnostics.coarse_subband_differences(torch.zeros(8, 8), torch.zeros(8, 8), levels=1)
+
+
+def test_running_mean_and_gap_against_numpy(tmp_path):
+    values = np.random.default_rng(3).normal(size=(20, 2))
+    smoothed = diagnostics.running_mean(values, 4)
+    for t in range(20):
+        np.testing.assert_allclose(smoothed[t], values[max(0, t - 3):t + 1].mean(axis=0), rtol=1e-12)
+    records = [{"kind": "train", "step": s, "kurtosis_render": [float(s)] * 6, "kurtosis_gt": [1.0, 2.0, 3.0] * 2}
+               for s in range(10)]
+    steps, gap = diagnostics.kurtosis_gap(records)
+    np.testing.assert_allclose(gap[:, 0], [np.mean(np.abs(s - np.array([1.0, 2.0, 3.0]))) for s in range(10)])
+    path = diagnostics.plot_kurtosis_gap_comparison({"a": records, "b": records[::2]}, tmp_path / "gap.png", window=3)
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    assert image is not None and image.std() > 0

@@ -85,6 +85,57 @@ def plot_kurtosis_history(records: Iterable[dict], path: str | Path, title: str 
     return path
 
 
+def running_mean(values: np.ndarray, window: int) -> np.ndarray:
+    """Trailing running mean over axis 0 (the first ``window - 1`` entries average what exists so far)."""
+    values = np.asarray(values, dtype=np.float64)
+    window = max(int(window), 1)
+    cumulative = np.cumsum(np.concatenate([np.zeros((1, *values.shape[1:])), values]), axis=0)
+    index = np.arange(1, values.shape[0] + 1)
+    start = np.maximum(index - window, 0)
+    counts = (index - start).reshape(-1, *([1] * (values.ndim - 1)))
+    return (cumulative[index] - cumulative[start]) / counts
+
+
+def kurtosis_gap(records: Iterable[dict]) -> tuple[np.ndarray, np.ndarray]:
+    """Steps [T] and the per-level gap [T, J]: mean over the three orientations of |k_render - k_gt|."""
+    steps, render, gt = kurtosis_history(records)
+    gap = np.abs(render - gt)
+    return steps, gap.reshape(gap.shape[0], -1, 3).mean(axis=2)
+
+
+def plot_kurtosis_gap_comparison(records_by_method: dict[str, Iterable[dict]], path: str | Path, window: int = 10,
+                                 title: str = "") -> Path:
+    """PNG: per level, the running mean (``window`` log records) of the render-vs-GT kurtosis gap, one curve per
+    method. The logged kurtosis is that of the step's training image, so single records are noisy; the running mean
+    shows the trend."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    gaps = {method: kurtosis_gap(records) for method, records in records_by_method.items()}
+    if not gaps:
+        raise ValueError("plot_kurtosis_gap_comparison: no method given")
+    levels = next(iter(gaps.values()))[1].shape[1]
+    fig, axes = plt.subplots(1, levels, figsize=(4.2 * levels, 3.4), squeeze=False)
+    for level in range(levels):
+        ax = axes[0, level]
+        for i, (method, (steps, gap)) in enumerate(gaps.items()):
+            ax.plot(steps, running_mean(gap[:, level], window), color=plt.get_cmap("tab10")(i), label=method)
+        ax.set_title(f"level {level + 1}: |kurtosis render - GT| (running mean of {window})", fontsize=8)
+        ax.set_xlabel("step")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=7)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def _to_bchw(image: torch.Tensor | np.ndarray, name: str) -> torch.Tensor:
     tensor = torch.as_tensor(np.asarray(image) if not isinstance(image, torch.Tensor) else image).detach()
     if tensor.ndim != 3 or tensor.shape[-1] not in (1, 3):
