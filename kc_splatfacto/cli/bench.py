@@ -10,7 +10,8 @@ runs whose folder already holds a final evaluation.
 Example (the committed castle-P30 result)::
 
     kc-bench --data ../shared/data/castle-P30 --downscale-factor 4 --methods splatfacto kc-splatfacto \\
-        kc-splatfacto-fine --seeds 0 1 2 --max-num-iterations 600 --output-dir docs/results/castle-P30
+        kc-splatfacto-fine --seeds 0 1 2 --max-num-iterations 800 --num-evals 8 --steps-scale 1 \\
+        --set pipeline.model.num_downscales=0 --output-dir docs/results/castle-P30 --runs-dir outputs/bench-castle-P30
 """
 
 from __future__ import annotations
@@ -213,9 +214,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--num-evals", type=int, default=8, help="log-spaced test evaluations per run")
     parser.add_argument("--downscale-factor", type=int, default=None, help="image downscale handed to the dataparser")
     parser.add_argument(
-        "--steps-scale", default="auto",
-        help="'auto' = budget / 30000 (Splatfacto's schedule compressed to the budget), 'none' keeps the method's, "
-             "or a number",
+        "--steps-scale", default="none",
+        help="'none' keeps the method's schedule (the first N steps of Splatfacto's), 'auto' = budget / 30000 "
+             "(the whole schedule compressed to the budget: on sparse scenes it densifies every few steps and "
+             "overfits, see docs/results/README.md), or a number",
     )
     parser.add_argument("--device", default="cpu", help="'cpu', 'cuda', or 'auto'")
     parser.add_argument("--time-key", choices=("train_s", "elapsed_s"), default="train_s",
