@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from kc_splatfacto.data import resolve_dataparser
+from kc_splatfacto.data.base import DataParserError
 from kc_splatfacto.data.dataset import ImageDataset
 from kc_splatfacto.data.demo import (
     DemoDataParserConfig,
@@ -58,7 +59,7 @@ def test_demo_split_is_12_train_12_test_alternating(demo_parser):
 
 
 def test_demo_regenerated_with_same_seed_is_identical(tmp_path):
-    small = dict(width=64, height=48, num_points=300)
+    small = {"width": 64, "height": 48, "num_points": 300}
     first = DemoDataParserConfig(demo_cache_dir=tmp_path / "a", **small).setup().get_dataparser_outputs("train")
     again = DemoDataParserConfig(demo_cache_dir=tmp_path / "b", **small).setup().get_dataparser_outputs("train")
     assert first.image_filenames[0].parent != again.image_filenames[0].parent  # really generated twice
@@ -134,9 +135,15 @@ def test_resolve_dataparser_demo_uses_the_cache_env(monkeypatch, tmp_path):
 
 
 def test_demo_spec_rejects_bad_sizes(tmp_path):
-    from kc_splatfacto.data.base import DataParserError
-
     with pytest.raises(DataParserError, match="too small"):
         ensure_demo_scene(DemoSceneSpec(width=4, height=4), tmp_path)
     with pytest.raises(DataParserError, match="at least 2 cameras"):
         ensure_demo_scene(DemoSceneSpec(num_cameras=1), tmp_path)
+
+
+def test_unwritable_cache_is_a_clear_error(monkeypatch, tmp_path):
+    blocker = tmp_path / "not_a_folder"
+    blocker.write_text("a file where the cache folder should be")
+    monkeypatch.setenv("KC_SPLATFACTO_CACHE", str(blocker))
+    with pytest.raises(DataParserError, match="cannot write the demo scene .*KC_SPLATFACTO_CACHE"):
+        resolve_dataparser("demo").setup()

@@ -66,7 +66,10 @@ def test_castle_seed_points_reproject_onto_their_track_keypoints(castle_p30, tmp
             keypoint = torch.tensor(image.points2D[element.point2D_idx].xy) / 2.0
             errors.append((uv[0] - keypoint).norm().item())
     errors = np.array(errors)
-    print(f"castle-P30 reprojection at 384x256: mean {errors.mean():.3f} px, median {np.median(errors):.3f}, max {errors.max():.3f}")
+    print(
+        f"castle-P30 reprojection at 384x256: mean {errors.mean():.3f} px, "
+        f"median {np.median(errors):.3f}, max {errors.max():.3f}"
+    )
     assert len(errors) == 6089
     assert np.mean(errors) < 0.3 and np.median(errors) < 0.15  # README at full size: mean 0.299, median 0.159
     assert np.mean(errors < 1.0) > 0.98 and errors.max() < 2.5  # README max 3.93 px at full size

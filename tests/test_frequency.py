@@ -74,9 +74,7 @@ def test_wavelet_l1_matches_numpy(heavy_tailed_pair, weighting):
     for j in range(3):
         for o in range(3):
             diffs = [
-                np.abs(pywt_bands(pred[b, c])[j][o] - pywt_bands(gt[b, c])[j][o])
-                for b in range(2)
-                for c in range(3)
+                np.abs(pywt_bands(pred[b, c])[j][o] - pywt_bands(gt[b, c])[j][o]) for b in range(2) for c in range(3)
             ]
             expected += weights[j] * np.mean(np.stack(diffs))
     ours = wavelet_l1(torch.tensor(pred), torch.tensor(gt), weighting=weighting)
@@ -90,7 +88,9 @@ def test_band_kurtosis_matches_scipy(heavy_tailed_pair):
     for b in range(2):
         for c in range(3):
             bands = pywt_bands(pred[b, c])
-            expected = [scipy.stats.kurtosis(bands[j][o].ravel(), fisher=True, bias=True) for j in range(3) for o in range(3)]
+            expected = [
+                scipy.stats.kurtosis(bands[j][o].ravel(), fisher=True, bias=True) for j in range(3) for o in range(3)
+            ]
             np.testing.assert_allclose(ours[b, c], expected, rtol=1e-4)
     assert ours[..., :3].min() > 0.5  # really heavy-tailed data (the finest bands have the most samples)
 
@@ -100,7 +100,9 @@ def test_band_kurtosis_float32_matches_scipy_on_real_image(castle_p30):
     ours = band_kurtosis(dwt2(image.float())).numpy()
     for c in range(3):
         bands = pywt_bands(image[0, c].numpy())
-        expected = [scipy.stats.kurtosis(bands[j][o].ravel(), fisher=True, bias=True) for j in range(3) for o in range(3)]
+        expected = [
+            scipy.stats.kurtosis(bands[j][o].ravel(), fisher=True, bias=True) for j in range(3) for o in range(3)
+        ]
         np.testing.assert_allclose(ours[0, c], expected, rtol=1e-4)
 
 
@@ -206,6 +208,12 @@ def test_frequency_loss_returns_only_active_terms(weights, keys):
     assert set(out) == keys
 
 
+@pytest.mark.parametrize("bad", [-1e-3, float("nan"), float("inf")])
+def test_bad_weight_is_refused(bad):
+    with pytest.raises(ValueError, match="kc_weight"):
+        FrequencyLoss(kc_weight=bad)
+
+
 def test_frequency_loss_unsupervised_and_correlation_options(heavy_tailed_pair):
     pred, gt = (torch.tensor(a) for a in heavy_tailed_pair)
     loss = FrequencyLoss(0.0, 1.0, 1.0, kc_supervised=False, cbc_supervised=False, cbc_correlation=True)
@@ -221,6 +229,16 @@ def test_frequency_loss_weighting_option(heavy_tailed_pair):
         torch.testing.assert_close(out["wavelet_loss"], wavelet_l1(pred, gt, weighting=weighting))
 
 
+def test_float64_cached_target_serves_a_float32_prediction(heavy_tailed_pair):
+    pred, gt = (torch.tensor(a) for a in heavy_tailed_pair)
+    loss = FrequencyLoss(1.0, 1.0, 1.0)
+    mixed = loss(pred.float(), loss.prepare_target(gt))  # target cached in float64
+    same = loss(pred.float(), loss.prepare_target(gt.float()))
+    for key, value in mixed.items():
+        assert value.dtype == torch.float32
+        torch.testing.assert_close(value, same[key], rtol=1e-4, atol=1e-7)
+
+
 def test_target_with_other_settings_is_refused():
     gt = torch.rand(1, 3, 64, 64)
     target = FrequencyLoss(mode="zero").prepare_target(gt)
@@ -228,6 +246,14 @@ def test_target_with_other_settings_is_refused():
         FrequencyLoss(mode="symmetric")(torch.rand(1, 3, 64, 64), target)
     with pytest.raises(ValueError, match="same"):
         FrequencyLoss()(torch.rand(1, 3, 64, 32), FrequencyLoss().prepare_target(gt))
+    pred = torch.rand(1, 3, 64, 64)
+    for call in (
+        lambda: wavelet_l1(pred, target),
+        lambda: kc_loss(pred, target),
+        lambda: cbc_loss(pred, target, mode="zero", correlation=True),
+    ):
+        with pytest.raises(ValueError, match="prepare the target"):
+            call()
 
 
 def test_frequency_loss_falls_when_optimized(castle_p30):
@@ -267,3 +293,23 @@ def test_band_kurtosis_for_logging_layouts(castle_p30):
     np.testing.assert_allclose(from_bchw, expected, rtol=1e-6)
     np.testing.assert_allclose(from_hwc, expected, rtol=1e-6)
     np.testing.assert_allclose(from_target, expected, rtol=1e-6)
+
+
+@pytest.mark.parametrize("term", ["kurtosis", "covariance", "correlation", "kc", "kc_unsupervised", "cbc", "module"])
+def test_gradcheck_float64(term):
+    # the band statistics have a hand-written backward: check it against finite differences
+    torch.manual_seed(1)
+    pred = torch.rand(2, 1, 20, 21, dtype=torch.float64, requires_grad=True)
+    gt = torch.rand(2, 1, 20, 21, dtype=torch.float64)
+    options = {"levels": 2}
+    functions = {
+        "kurtosis": lambda p: band_kurtosis(dwt2(p, levels=2)),
+        "covariance": lambda p: torch.stack(cross_band_covariance(dwt2(p, levels=2))),
+        "correlation": lambda p: torch.stack(cross_band_covariance(dwt2(p, levels=2), correlation=True)),
+        "kc": lambda p: kc_loss(p, gt, **options),
+        "kc_unsupervised": lambda p: kc_loss(p, supervised=False, **options),
+        "cbc": lambda p: cbc_loss(p, gt, **options) * 1e4,
+        "module": lambda p: torch.stack(list(FrequencyLoss(1.0, 1.0, 1e4, levels=2)(p, gt).values())),
+    }
+    # fast mode: the Jacobian against finite differences along random directions (full mode is ~10x slower)
+    assert torch.autograd.gradcheck(functions[term], (pred,), eps=1e-6, atol=1e-6, rtol=1e-5, fast_mode=True)

@@ -10,7 +10,8 @@ from kc_splatfacto.render.rasterize_torch import rasterize_to_pixels_torch
 from kc_splatfacto.render.tiles import isect_offset_encode, isect_tiles, tile_grid
 
 
-def random_splats(n_cameras, n_gauss, width, height, channels, seed=0, sigma_px=(0.5, 4.0), margin=8.0):
+def random_splats(n_cameras, n_gauss, width, height, channels, seed=0, sigma_px=(0.5, 4.0), margin=8.0,
+                  tile_size=TILE_SIZE):
     """Random screen-space Gaussians with the benchmark's statistics, and their sorted tile intersections.
 
     Returns (means2d [C,N,2], conics [C,N,3], colors [C,N,D], opacities [C,N], isect_offsets, flatten_ids).
@@ -28,16 +29,16 @@ def random_splats(n_cameras, n_gauss, width, height, channels, seed=0, sigma_px=
     opacities = 0.05 + 0.9 * torch.rand(n_cameras, n_gauss, generator=g)
     depths = 1.0 + torch.rand(n_cameras, n_gauss, generator=g)
     radii = torch.ceil(3.0 * sig).to(torch.int32)
-    return (means2d, conics, colors, opacities) + intersections(means2d, radii, depths, width, height)
+    return (means2d, conics, colors, opacities) + intersections(means2d, radii, depths, width, height, tile_size)
 
 
-def intersections(means2d, radii, depths, width, height):
-    tile_w, tile_h = tile_grid(width, height, TILE_SIZE)
-    _, isect_ids, flatten_ids = isect_tiles(means2d, radii, depths, TILE_SIZE, tile_w, tile_h)
+def intersections(means2d, radii, depths, width, height, tile_size=TILE_SIZE):
+    tile_w, tile_h = tile_grid(width, height, tile_size)
+    _, isect_ids, flatten_ids = isect_tiles(means2d, radii, depths, tile_size, tile_w, tile_h)
     return isect_offset_encode(isect_ids, means2d.shape[0], tile_w, tile_h), flatten_ids
 
 
-def run_both(inputs, width, height, backgrounds=None, seed=1, absgrad=False):
+def run_both(inputs, width, height, backgrounds=None, seed=1, absgrad=False, tile_size=TILE_SIZE):
     """Forward + backward of a random linear loss through both paths -> (outputs, grads) for each."""
     means2d, conics, colors, opacities, offsets, flatten_ids = inputs
     results = []
@@ -45,7 +46,7 @@ def run_both(inputs, width, height, backgrounds=None, seed=1, absgrad=False):
     for fn in (rasterize_to_pixels_cpu, rasterize_to_pixels_torch):
         leaves = [t.detach().clone().requires_grad_(True) for t in (means2d, conics, colors, opacities)]
         bg = None if backgrounds is None else backgrounds.detach().clone().requires_grad_(True)
-        out_colors, out_alphas = fn(*leaves, width, height, TILE_SIZE, offsets, flatten_ids, backgrounds=bg,
+        out_colors, out_alphas = fn(*leaves, width, height, tile_size, offsets, flatten_ids, backgrounds=bg,
                                     absgrad=absgrad)
         if weights is None:
             g = torch.Generator().manual_seed(seed)
@@ -63,17 +64,19 @@ def assert_grad_close(actual, expected, name):
 
 
 @pytest.mark.parametrize(
-    "n_cameras, n_gauss, width, height, channels, with_bg",
+    "n_cameras, n_gauss, width, height, channels, with_bg, tile_size",
     [
-        (1, 400, 48, 32, 3, False),  # RGB, tile-aligned
-        (2, 300, 45, 37, 4, True),  # RGB+D, two cameras, backgrounds, partial edge tiles
-        (1, 200, 23, 50, 1, True),  # D only
+        (1, 400, 48, 32, 3, False, 16),  # RGB, tile-aligned
+        (2, 300, 45, 37, 4, True, 16),  # RGB+D, two cameras, backgrounds, partial edge tiles
+        (1, 200, 23, 50, 1, True, 16),  # D only
+        (2, 300, 45, 37, 4, True, 8),  # other tile sizes take the scalar kernels
     ],
 )
-def test_forward_and_gradients_match_reference(n_cameras, n_gauss, width, height, channels, with_bg):
-    inputs = random_splats(n_cameras, n_gauss, width, height, channels, seed=n_gauss)
+def test_forward_and_gradients_match_reference(n_cameras, n_gauss, width, height, channels, with_bg, tile_size):
+    inputs = random_splats(n_cameras, n_gauss, width, height, channels, seed=n_gauss, tile_size=tile_size)
     backgrounds = torch.rand(n_cameras, channels, generator=torch.Generator().manual_seed(7)) if with_bg else None
-    (fast_out, fast_grads, _), (ref_out, ref_grads, _) = run_both(inputs, width, height, backgrounds)
+    (fast_out, fast_grads, _), (ref_out, ref_grads, _) = run_both(inputs, width, height, backgrounds,
+                                                                  tile_size=tile_size)
     assert fast_out[0].shape == (n_cameras, height, width, channels)
     assert fast_out[1].shape == (n_cameras, height, width, 1)
     # the scene really covers the image and really saturates some pixels
@@ -106,18 +109,21 @@ def test_saturated_pixels_stop_before_transmittance_threshold():
         assert_grad_close(actual, expected, name)
 
 
-def test_indefinite_conic_is_tested_at_every_pixel():
-    """A conic that is not positive definite has no bounded ellipse: the fast path must not cull its pixels."""
-    means2d = torch.tensor([[[10.0, 9.0], [14.0, 12.0]]])
-    conics = torch.tensor([[[0.05, 0.2, 0.04], [0.3, 0.0, 0.2]]])  # first: det < 0, sigma < 0 along a diagonal
-    colors = torch.tensor([[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]])
-    opacities = torch.tensor([[0.9, 0.7]])
-    depths = torch.tensor([[1.0, 2.0]])
-    radii = torch.full((1, 2, 2), 40, dtype=torch.int32)
+def test_indefinite_and_extreme_conics_are_tested_at_every_pixel():
+    """A conic that is not positive definite has no bounded ellipse, and a nearly flat one has an extent beyond any
+    integer (1e19 px): the fast path must cull neither's pixels."""
+    means2d = torch.tensor([[[10.0, 9.0], [14.0, 12.0], [20.0, 6.0]]])
+    # first: det < 0, sigma < 0 along a diagonal; third: a = 1e-38, a horizontal band across the whole image
+    conics = torch.tensor([[[0.05, 0.2, 0.04], [0.3, 0.0, 0.2], [1e-38, 0.0, 0.5]]])
+    colors = torch.tensor([[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]])
+    opacities = torch.tensor([[0.9, 0.7, 0.8]])
+    depths = torch.tensor([[1.0, 2.0, 3.0]])
+    radii = torch.full((1, 3, 2), 40, dtype=torch.int32)
     inputs = (means2d, conics, colors, opacities) + intersections(means2d, radii, depths, 32, 24)
     (fast_out, fast_grads, _), (ref_out, ref_grads, _) = run_both(inputs, 32, 24)
     # the indefinite Gaussian contributes far from its centre where sigma is small and positive
     assert (fast_out[0][0, :, :, 0] > 0.01).sum() > 50
+    assert (fast_out[0][0, 6, :, 2] > 0.1).all()  # the band reaches both image borders
     torch.testing.assert_close(fast_out[0], ref_out[0], rtol=0, atol=1e-5)
     for name, actual, expected in zip(["means2d", "conics", "colors", "opacities"], fast_grads, ref_grads):
         assert_grad_close(actual, expected, name)
@@ -248,6 +254,10 @@ def test_packed_extent_is_conservative_and_tight():
                 assert (alpha < ALPHA_THRESHOLD).all()
             else:
                 assert (alpha > ALPHA_THRESHOLD).all()
+    # the per-pixel pre-test: at sigma = sigma_cut the float32 alpha is below the threshold, a little inside above
+    sigma_cut = torch.from_numpy(packed[:, 8].copy())
+    assert (opacities * torch.exp(-sigma_cut) < ALPHA_THRESHOLD).all()
+    assert (opacities * torch.exp(-(sigma_cut - 0.01)) > ALPHA_THRESHOLD).all()
 
 
 def scene_3d(n, n_cameras, seed, sh_degree):
@@ -308,3 +318,13 @@ def test_rasterization_cpu_backend_matches_torch_backend(sh_degree, render_mode,
             continue
         assert expected.abs().max() > 0, f"{name}: the reference gradient is zero, the test would be vacuous"
         assert_grad_close(actual, expected, name)
+
+
+def test_branch_free_exp_is_within_two_ulp():
+    from kc_splatfacto.render import _cpu_kernels as K
+
+    s = np.linspace(0.0, 12.0, 200_001, dtype=np.float32)
+    out = np.empty_like(s)
+    K.exp_neg_array(s, out)
+    exact = np.exp(-s.astype(np.float64))
+    assert np.max(np.abs(out - exact) / exact) < 2.0 * 2.0**-23

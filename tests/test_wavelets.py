@@ -32,6 +32,15 @@ def test_max_level_rule_matches_pywt(length, filter_len):
     assert dwt_max_level(length, filter_len) == pywt.dwt_max_level(length, filter_len)
 
 
+@pytest.mark.parametrize("mode", MODES)
+def test_coeff_length_matches_pywt(mode):
+    from kc_splatfacto.losses.wavelets import coeff_length
+
+    for length in (1, 2, 5, 6, 7, 64, 255, 257):
+        for flen in (2, 6, 12):
+            assert coeff_length(length, flen, mode) == pywt.dwt_coeff_len(length, flen, mode)
+
+
 def _pywt_reference(images: np.ndarray, wave: str, mode: str, levels: int):
     """pywt.wavedec2 per image/channel, rearranged into (approx [B,C,h,w], details finest first [B,C,3,h,w])."""
     batch, channels = images.shape[:2]
@@ -153,3 +162,19 @@ def test_bad_arguments_raise(kwargs, match):
 def test_bad_shape_raises():
     with pytest.raises(ValueError, match=r"\[B, C, H, W\]"):
         dwt2(torch.rand(32, 32))
+
+
+@pytest.mark.parametrize("mode", ["symmetric", "reflect", "periodization"])
+def test_fast_padding_equals_index_map_on_short_axes(mode):
+    # dwt2 pads with slices / F.pad when the extension fits the axis and with an index gather otherwise; both must
+    # build the same extension (pywt's), including axes shorter than the filter
+    from kc_splatfacto.losses.wavelets import _index_tensor, _pad
+
+    for flen in (2, 6, 12):
+        for height, width in [(1, 1), (2, 5), (5, 6), (11, 12), (13, 20)]:
+            x = torch.rand(2, 1, height, width)
+            rows = _index_tensor(height, flen, mode, x.device)
+            cols = _index_tensor(width, flen, mode, x.device)
+            torch.testing.assert_close(
+                _pad(x, flen, mode), x.index_select(-2, rows).index_select(-1, cols), rtol=0, atol=0
+            )

@@ -13,7 +13,12 @@ Methods come from the ``kc_splatfacto.method_configs`` entry points and ``KC_SPL
 from __future__ import annotations
 
 import copy
+import os
 import sys
+
+# Before torch loads (it is imported lazily below): OpenMP's default spin-waiting threads fight the rasterizer's
+# numba threads and make a step ~20x slower on small machines.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from kc_splatfacto.registry import discover_methods
 

@@ -8,6 +8,7 @@ from kc_splatfacto.data.base import (
     read_dataparser_transforms,
     write_dataparser_transforms,
 )
+from kc_splatfacto.data.dataset import ImageDataset
 from kc_splatfacto.data.detect import detect_format, resolve_dataparser
 from kc_splatfacto.data.outputs import Cameras, DataparserOutputs
 
@@ -17,6 +18,7 @@ __all__ = [
     "DataParserConfig",
     "DataParserError",
     "DataparserOutputs",
+    "ImageDataset",
     "PoseNormalization",
     "detect_format",
     "read_dataparser_transforms",

@@ -64,7 +64,7 @@ class DataParserConfig:
     """Where derived images (downscaled, undistorted) go. None: next to the scene's images when that folder is
     writable, else under ``$KC_SPLATFACTO_CACHE`` (``~/.cache/kc_splatfacto``)."""
 
-    def setup(self) -> "DataParser":
+    def setup(self) -> DataParser:
         raise NotImplementedError(f"{type(self).__name__} must implement setup()")
 
 
@@ -109,8 +109,9 @@ def _check_common_config(config: DataParserConfig) -> None:
 # Pose normalization (nerfstudio's camera_utils, in float64 numpy)
 # ----------------------------------------------------------------------------------------------------------------
 
+
 def rotation_matrix_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """[3,3] rotation taking direction ``a`` [3] onto ``b`` [3] (Rodrigues; nerfstudio's ``rotation_matrix_between``)."""
+    """[3,3] rotation taking direction ``a`` [3] onto ``b`` [3] (nerfstudio's ``rotation_matrix_between``)."""
     a = np.asarray(a, np.float64) / np.linalg.norm(a)
     b = np.asarray(b, np.float64) / np.linalg.norm(b)
     axis = np.cross(a, b)
@@ -170,9 +171,10 @@ def opencv_to_opengl(c2w: np.ndarray) -> np.ndarray:
     return out
 
 
-# nerfstudio's COLMAP parser first swaps world x/y and negates z (nerfstudio issue #1504); the orientation then
-# depends on this starting frame, so COLMAP-based parsers apply it too to land in nerfstudio's exact world.
-COLMAP_APPLIED_TRANSFORM = np.array([[0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0]])
+# nerfstudio's COLMAP parser (``assume_colmap_world_coordinate_convention=True``, its default) first maps COLMAP's
+# gravity guess (-y) to +z: world (x, y, z) -> (x, z, -y). The "up" orientation's shortest-arc rotation depends on
+# this starting frame (it fixes the azimuth), so COLMAP-based parsers apply it too, to land in nerfstudio's world.
+COLMAP_APPLIED_TRANSFORM = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, -1.0, 0.0, 0.0]])
 
 
 @dataclass
@@ -277,6 +279,7 @@ def make_cameras(c2w_opencv: np.ndarray, intrinsics: np.ndarray, widths: Any, he
 # ----------------------------------------------------------------------------------------------------------------
 # dataparser_transforms.json (nerfstudio's format)
 # ----------------------------------------------------------------------------------------------------------------
+
 
 def write_dataparser_transforms(path: str | Path, outputs_or_transform: Any, scale: float | None = None) -> Path:
     """Write nerfstudio's ``dataparser_transforms.json``: ``{"transform": [3x4], "scale": s}``, atomically.

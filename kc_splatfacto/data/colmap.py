@@ -5,7 +5,7 @@ Layout::
     <scene>/images/            the images the model was built from (names as in images.txt, sub-folders allowed)
     <scene>/sparse/0/          cameras, images, points3D (.bin or .txt); also found at colmap/sparse/0 or sparse/
 
-Splits (``eval_mode``, nerfstudio's names and rules, images sorted by name):
+Splits (``eval_mode``, nerfstudio's names and rules, images in COLMAP image-id order as nerfstudio):
 ``interval`` every ``eval_interval``-th image (index % 8 == 0) is eval, the rest train (the default);
 ``fraction`` ``ceil(n * train_split_fraction)`` images evenly spaced over the sorted list train, the rest eval;
 ``filename`` names containing "train" are train, names containing "eval" are eval (others are an error);
@@ -33,7 +33,6 @@ from kc_splatfacto.data.base import (
     DataParser,
     DataParserConfig,
     DataParserError,
-    PoseNormalization,
     make_cameras,
     normalize_poses,
     scene_scale_of,
@@ -90,7 +89,7 @@ class ColmapModel:
     Attributes:
         path: the model folder.
         cameras: camera id -> :class:`ColmapCamera`.
-        images: registered images sorted by name.
+        images: registered images in image-id order (nerfstudio's order for splits).
         points_xyz: [M,3] float64 world points; points_rgb: [M,3] uint8 colours.
     """
 
@@ -106,7 +105,7 @@ class ColmapModel:
 
 
 def find_model_dir(scene: Path, configured: Path | None, candidates: tuple[str, ...] = DEFAULT_MODEL_DIRS) -> Path:
-    """The COLMAP model folder of ``scene``: ``configured`` (relative to the scene) or the first candidate holding one."""
+    """The COLMAP model folder of ``scene``: ``configured`` (relative to it) or the first candidate holding one."""
     if configured is not None:
         path = configured if Path(configured).is_absolute() else scene / configured
         if not has_model(path):
@@ -172,19 +171,26 @@ def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
     try:
         reconstruction = pycolmap.Reconstruction(str(model_dir))
     except Exception as exc:
+        bad = _images_with_non_finite_poses(model_dir / "images.txt")
+        if bad:
+            raise DataParserError(
+                f"the poses of images {', '.join(bad)} in {model_dir / 'images.txt'} contain NaN/inf: "
+                "fix or remove them"
+            ) from exc
         raise DataParserError(f"could not read the COLMAP model in {model_dir}: {exc}") from exc
     cameras = {cid: _camera_from_pycolmap(cid, cam, model_dir) for cid, cam in reconstruction.cameras.items()}
     images = []
-    for image in reconstruction.images.values():
+    for _, image in sorted(reconstruction.images.items()):
         pose = image.cam_from_world() if callable(image.cam_from_world) else image.cam_from_world
         w2c = np.eye(4)
         w2c[:3, :4] = np.asarray(pose.matrix(), np.float64)
         if not np.isfinite(w2c).all():
-            raise DataParserError(f"the pose of image '{image.name}' in {model_dir} contains NaN/inf: fix images.txt/.bin")
+            raise DataParserError(
+                f"the pose of image '{image.name}' in {model_dir} contains NaN/inf: fix images.txt/.bin"
+            )
         if image.camera_id not in cameras:
             raise DataParserError(f"image '{image.name}' in {model_dir} names unknown camera {image.camera_id}")
         images.append(ColmapImage(image.name, int(image.camera_id), w2c))
-    images.sort(key=lambda im: im.name)
     if load_points and len(reconstruction.points3D) > 0:
         points = list(reconstruction.points3D.values())
         xyz = np.array([p.xyz for p in points], np.float64).reshape(-1, 3)
@@ -198,9 +204,29 @@ def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
     return ColmapModel(model_dir, cameras, images, xyz, rgb)
 
 
+def _images_with_non_finite_poses(images_txt: Path) -> list[str]:
+    """Names of images whose pose line holds a non-finite number (pycolmap's text reader only says it failed)."""
+    if not images_txt.is_file():
+        return []
+    bad = []
+    lines = [line for line in images_txt.read_text(errors="replace").splitlines() if not line.startswith("#")]
+    for line in lines[0::2]:  # pose lines alternate with 2D point lines
+        fields = line.split()
+        if len(fields) < 10:
+            continue
+        try:
+            finite = np.isfinite([float(v) for v in fields[1:8]]).all()
+        except ValueError:
+            finite = False
+        if not finite:
+            bad.append(fields[9])
+    return bad
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # Undistortion
 # ----------------------------------------------------------------------------------------------------------------
+
 
 def undistorted_pinhole(camera: ColmapCamera) -> tuple[np.ndarray, tuple[int, int, int, int]]:
     """The pinhole that OpenCV undistorts ``camera`` into, and the valid-pixel crop.
@@ -215,7 +241,8 @@ def undistorted_pinhole(camera: ColmapCamera) -> tuple[np.ndarray, tuple[int, in
     x, y, w, h = (int(v) for v in roi)
     if w <= 0 or h <= 0:
         raise DataParserError(
-            f"undistorting a {camera.model} camera with distortion {camera.distortion.tolist()} leaves no valid pixels: "
+            f"undistorting a {camera.model} camera with distortion {camera.distortion.tolist()} leaves no valid "
+            "pixels: "
             "check the camera parameters"
         )
     new_k = np.asarray(new_k, np.float64).copy()
@@ -265,6 +292,7 @@ def undistorted_paths(
 # ----------------------------------------------------------------------------------------------------------------
 # Shared assembly for COLMAP-based parsers (COLMAP, SPARS3R)
 # ----------------------------------------------------------------------------------------------------------------
+
 
 def check_image_sizes(paths: list[Path], cameras: list[ColmapCamera], camera_names: list[str]) -> None:
     """Each image must have its camera's size; names the first offender."""
@@ -351,6 +379,12 @@ def colmap_split_outputs(
     cameras = [model.cameras[cid] for cid in camera_ids]
     paths = [images_dir / name for name in split_names]
     check_image_sizes(paths, cameras, [f"COLMAP camera {cid}" for cid in camera_ids])
+    mask_paths = None
+    masks_path = getattr(config, "masks_path", None)
+    if masks_path is not None:
+        masks_dir = Path(config.data) / masks_path
+        mask_paths = [masks_dir / Path(name).with_suffix(".png") for name in split_names]
+        mask_paths = prepare_masks(config, mask_paths, cameras, [masks_dir] * len(paths), metadata)
     paths, intrinsics, sizes = pinhole_images(config, paths, cameras, [images_dir] * len(paths), metadata)
 
     outputs = DataparserOutputs(
@@ -360,6 +394,7 @@ def colmap_split_outputs(
         scene_scale=scene_scale_of(c2w_normalized_all),
         dataparser_transform=torch.from_numpy(normalization.transform.astype(np.float32)),
         dataparser_scale=float(normalization.scale),
+        mask_filenames=mask_paths,
         metadata={"normalization": normalization, "image_names": list(split_names), **metadata},
     )
     if load_points and len(model.points_xyz) > 0:
@@ -368,12 +403,33 @@ def colmap_split_outputs(
     return outputs
 
 
+def prepare_masks(
+    config: DataParserConfig,
+    mask_paths: list[Path],
+    cameras: list[ColmapCamera],
+    masks_dirs: list[Path],
+    metadata: dict,
+) -> list[Path]:
+    """Mask files (white = use the pixel) checked, then undistorted and downscaled exactly like their images."""
+    missing = [str(p) for p in mask_paths if not p.is_file()]
+    if missing:
+        raise DataParserError(
+            f"{len(missing)} mask file(s) are missing: {', '.join(missing[:5])}{' ...' if len(missing) > 5 else ''} "
+            "(masks are <masks_path>/<image name>.png; add them or unset masks_path / mask_path)"
+        )
+    check_image_sizes(mask_paths, cameras, ["camera"] * len(mask_paths))
+    paths, _, _ = pinhole_images(config, mask_paths, cameras, masks_dirs, {})
+    return paths
+
+
 def scale_intrinsics(intrinsics: np.ndarray, sizes: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray]:
     """[N,4] (fx, fy, cx, cy) and [N,2] (w, h) for images downscaled by ``factor`` (floor sizes, exact ratios)."""
     sizes = np.asarray(sizes, np.int64)
     new_sizes = sizes // factor
     if (new_sizes < 1).any():
-        raise DataParserError(f"downscale_factor {factor} is too large for the {sizes.min()}-pixel images: use a smaller one")
+        raise DataParserError(
+            f"downscale_factor {factor} is too large for the {sizes.min()}-pixel images: use a smaller one"
+        )
     ratio = new_sizes / sizes
     out = np.asarray(intrinsics, np.float64).copy()
     out[:, 0] *= ratio[:, 0]
@@ -386,6 +442,7 @@ def scale_intrinsics(intrinsics: np.ndarray, sizes: np.ndarray, factor: int) -> 
 # ----------------------------------------------------------------------------------------------------------------
 # The COLMAP dataparser
 # ----------------------------------------------------------------------------------------------------------------
+
 
 @dataclass
 class ColmapDataParserConfig(DataParserConfig):
@@ -403,13 +460,17 @@ class ColmapDataParserConfig(DataParserConfig):
     """Fraction of images for training (eval_mode "fraction")."""
     load_3d_points: bool = True
     """Seed points from points3D."""
+    masks_path: Path | None = None
+    """Optional mask folder relative to ``data``: ``<masks_path>/<image name>.png``, white = use the pixel."""
 
-    def setup(self) -> "ColmapDataParser":
+    def setup(self) -> ColmapDataParser:
         return ColmapDataParser(self)
 
 
-def split_indices(names: list[str], eval_mode: str, eval_interval: int, train_fraction: float) -> tuple[list[int], list[int]]:
-    """(train, eval) indices into the name-sorted ``names`` (nerfstudio's ``get_train_eval_split_*``)."""
+def split_indices(
+    names: list[str], eval_mode: str, eval_interval: int, train_fraction: float
+) -> tuple[list[int], list[int]]:
+    """(train, eval) indices into ``names`` in the model's order (nerfstudio's ``get_train_eval_split_*``)."""
     n = len(names)
     if eval_mode == "interval":
         if eval_interval < 1:
@@ -449,12 +510,18 @@ class ColmapDataParser(DataParser):
             raise DataParserError(f"COLMAP scene folder {scene} does not exist: check --data")
         images_dir = scene / self.config.images_path
         if not images_dir.is_dir():
-            raise DataParserError(f"image folder {images_dir} does not exist: set images_path to the scene's image folder")
-        model = read_colmap_model(find_model_dir(scene, self.config.colmap_path), load_points=self.config.load_3d_points)
+            raise DataParserError(
+                f"image folder {images_dir} does not exist: set images_path to the scene's image folder"
+            )
+        model = read_colmap_model(
+            find_model_dir(scene, self.config.colmap_path), load_points=self.config.load_3d_points
+        )
         if not model.images:
             raise DataParserError(f"the COLMAP model in {model.path} has no registered images")
         names = [image.name for image in model.images]
-        train, evals = split_indices(names, self.config.eval_mode, self.config.eval_interval, self.config.train_split_fraction)
+        train, evals = split_indices(
+            names, self.config.eval_mode, self.config.eval_interval, self.config.train_split_fraction
+        )
         chosen = train if split == "train" else evals
         return colmap_split_outputs(
             self.config,

@@ -7,7 +7,7 @@ from ``DataparserOutputs.mask_filenames`` take precedence.
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -92,7 +92,9 @@ class ImageDataset:
             mask_path = self.outputs.mask_filenames[i]
             mask_image = read_image(mask_path)
             if mask_image.shape[:2] != (height, width):
-                raise DataParserError(f"mask {mask_path} is {mask_image.shape[1]}x{mask_image.shape[0]}, expected {width}x{height}")
+                raise DataParserError(
+                    f"mask {mask_path} is {mask_image.shape[1]}x{mask_image.shape[0]}, expected {width}x{height}"
+                )
             mask = torch.from_numpy(mask_image[..., :1] > 127)
         self._images[i] = torch.from_numpy(np.ascontiguousarray(image))
         self._masks[i] = mask

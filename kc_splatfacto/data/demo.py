@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kc_splatfacto.data.base import DataParserError, default_cache_dir
+from kc_splatfacto.data.base import CACHE_ENV, DataParserError, default_cache_dir
 from kc_splatfacto.data.images import write_image_atomic
 from kc_splatfacto.data.spars3r import Spars3rDataParser, Spars3rDataParserConfig
 
@@ -84,6 +84,7 @@ class DemoScene:
 # Textures
 # ----------------------------------------------------------------------------------------------------------------
 
+
 def pink_noise(rng: np.random.Generator, size: int) -> np.ndarray:
     """[size, size] periodic Gaussian noise with a 1/f amplitude spectrum, unit standard deviation."""
     freq = np.fft.fftfreq(size)
@@ -107,7 +108,7 @@ def dead_leaves_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE, num_
     for radius in radii:
         cx, cy = rng.uniform(0, size, size=2)
         colour = palette[rng.integers(len(palette))] * rng.uniform(0.7, 1.15) + rng.normal(0, 0.04, 3)
-        r = int(math.ceil(radius))
+        r = math.ceil(radius)
         ys = np.arange(int(cy) - r, int(cy) + r + 1)
         xs = np.arange(int(cx) - r, int(cx) + r + 1)
         dy, dx = ys[:, None] + 0.5 - cy, xs[None, :] + 0.5 - cx
@@ -146,6 +147,7 @@ def sample_texture(texture: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndar
 # Scene and cameras
 # ----------------------------------------------------------------------------------------------------------------
 
+
 def build_scene(seed: int = 0) -> DemoScene:
     """The demo scene's primitives and textures, deterministic from ``seed``."""
     rng = np.random.default_rng(seed)
@@ -163,11 +165,13 @@ def build_scene(seed: int = 0) -> DemoScene:
     return DemoScene(planes=planes, boxes=boxes, textures=textures, seed=seed)
 
 
-def look_at_c2w(eye: np.ndarray, target: np.ndarray, world_up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
+def look_at_c2w(
+    eye: np.ndarray, target: np.ndarray, world_up: tuple[float, float, float] = (0.0, 0.0, 1.0)
+) -> np.ndarray:
     """[4,4] camera-to-world in OpenCV axes (x right, y down, z forward) looking from ``eye`` at ``target``."""
     forward = target - eye
     forward = forward / np.linalg.norm(forward)
-    right = np.cross(forward, world_up)
+    right = np.cross(forward, np.asarray(world_up, np.float64))
     right = right / np.linalg.norm(right)
     down = np.cross(forward, right)
     c2w = np.eye(4)
@@ -192,9 +196,15 @@ def arc_cameras(num_cameras: int, width: int, height: int) -> tuple[np.ndarray, 
 # Ray casting
 # ----------------------------------------------------------------------------------------------------------------
 
+
 def _rotate(vectors: np.ndarray, rot: np.ndarray) -> np.ndarray:
     """[K,3] vectors times ``rot`` [3,3] (``rot @ v`` each), by broadcasting: tiny BLAS calls are slow on a busy CPU."""
     return vectors[:, 0:1] * rot[:, 0] + vectors[:, 1:2] * rot[:, 1] + vectors[:, 2:3] * rot[:, 2]
+
+
+def _rows(origins: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """Origins of the selected rays: a shared [1,3] origin broadcasts, per-ray [K,3] origins are indexed."""
+    return origins if len(origins) == 1 else origins[index]
 
 
 def _intersect(primitive: Plane | Box, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
@@ -211,8 +221,12 @@ def _intersect(primitive: Plane | Box, origins: np.ndarray, directions: np.ndarr
         t1 = (-primitive.half_size - o_local) / d_local
         t2 = (primitive.half_size - o_local) / d_local
     # 0/0 (a ray inside a slab plane) gives NaN: fmax/fmin ignore it, like an unbounded slab.
-    t_near = np.fmax(np.fmax(np.minimum(t1[:, 0], t2[:, 0]), np.minimum(t1[:, 1], t2[:, 1])), np.minimum(t1[:, 2], t2[:, 2]))
-    t_far = np.fmin(np.fmin(np.maximum(t1[:, 0], t2[:, 0]), np.maximum(t1[:, 1], t2[:, 1])), np.maximum(t1[:, 2], t2[:, 2]))
+    t_near = np.fmax(
+        np.fmax(np.minimum(t1[:, 0], t2[:, 0]), np.minimum(t1[:, 1], t2[:, 1])), np.minimum(t1[:, 2], t2[:, 2])
+    )
+    t_far = np.fmin(
+        np.fmin(np.maximum(t1[:, 0], t2[:, 0]), np.maximum(t1[:, 1], t2[:, 1])), np.maximum(t1[:, 2], t2[:, 2])
+    )
     return np.where((t_far >= t_near) & (t_near > RAY_EPS), t_near, np.inf)
 
 
@@ -234,7 +248,7 @@ def _surface(primitive: Plane | Box, points: np.ndarray) -> tuple[np.ndarray, np
 
 
 def cast_rays(scene: DemoScene, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Nearest hit of rays [K,3]: (t [K] (inf = sky), rgb [K,3] shaded colour in [0,1])."""
+    """Nearest hit of rays (origins [K,3] or a shared [1,3], directions [K,3]): (t [K] (inf = sky), rgb [K,3])."""
     primitives: list[Plane | Box] = [*scene.planes, *scene.boxes]
     ts = np.stack([_intersect(p, origins, directions) for p in primitives])
     winner = np.argmin(ts, axis=0)
@@ -244,7 +258,7 @@ def cast_rays(scene: DemoScene, origins: np.ndarray, directions: np.ndarray) -> 
         idx = np.nonzero((winner == index) & np.isfinite(best_t))[0]
         if len(idx) == 0:
             continue
-        points = origins[idx] + best_t[idx, None] * directions[idx]
+        points = _rows(origins, idx) + best_t[idx, None] * directions[idx]
         u, v, normal = _surface(primitive, points)
         colour = sample_texture(scene.textures[primitive.texture], u, v)
         shade = 0.55 + 0.45 * np.clip(normal @ LIGHT_DIRECTION, 0.0, 1.0)
@@ -253,12 +267,15 @@ def cast_rays(scene: DemoScene, origins: np.ndarray, directions: np.ndarray) -> 
 
 
 def camera_rays(c2w: np.ndarray, intrinsics: np.ndarray, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World rays through pixel coordinates [K,2] (pixel centres at +0.5): (origins [K,3], unit directions [K,3])."""
+    """World rays through pixel coordinates [K,2] (pixel centres at +0.5): (origin [1,3], unit directions [K,3]).
+
+    The origin is shared (a pinhole), kept as one row so that per-ray work on it is done once.
+    """
     fx, fy, cx, cy = intrinsics
     d_cam = np.stack([(pixels[:, 0] - cx) / fx, (pixels[:, 1] - cy) / fy, np.ones(len(pixels))], axis=1)
     d_world = _rotate(d_cam, c2w[:3, :3])
     d_world /= np.sqrt((d_world**2).sum(axis=1, keepdims=True))
-    return np.broadcast_to(c2w[:3, 3], d_world.shape), d_world
+    return c2w[None, :3, 3].copy(), d_world
 
 
 def render_view(
@@ -282,18 +299,24 @@ def render_view(
 
 
 def sample_seed_points(
-    scene: DemoScene, c2ws: np.ndarray, intrinsics: np.ndarray, width: int, height: int, num_points: int,
-    noise: float, rng: np.random.Generator,
+    scene: DemoScene,
+    c2ws: np.ndarray,
+    intrinsics: np.ndarray,
+    width: int,
+    height: int,
+    num_points: int,
+    noise: float,
+    rng: np.random.Generator,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Surface points seen by random pixels of the given views: (noisy xyz [M,3], rgb uint8 [M,3], clean xyz [M,3])."""
-    per_view = int(math.ceil(num_points / len(c2ws)))
+    per_view = math.ceil(num_points / len(c2ws))
     clean, colours = [], []
     for c2w in c2ws:
         pixels = rng.uniform([0, 0], [width, height], size=(per_view * 2, 2))
         origins, dirs = camera_rays(c2w, intrinsics, pixels)
         t, rgb = cast_rays(scene, origins, dirs)
         hit = np.isfinite(t)
-        points = origins[hit] + t[hit, None] * dirs[hit]
+        points = _rows(origins, hit) + t[hit, None] * dirs[hit]
         clean.append(points[:per_view])
         colours.append(rgb[hit][:per_view])
     clean_xyz = np.concatenate(clean)[:num_points]
@@ -305,6 +328,7 @@ def sample_seed_points(
 # ----------------------------------------------------------------------------------------------------------------
 # Writing the scene (SPARS3R layout, COLMAP text model)
 # ----------------------------------------------------------------------------------------------------------------
+
 
 def rotation_to_quaternion(rot: np.ndarray) -> np.ndarray:
     """[3,3] rotation -> (w, x, y, z), w >= 0 (Shepperd's method, numerically stable for every angle)."""
@@ -328,8 +352,14 @@ def rotation_to_quaternion(rot: np.ndarray) -> np.ndarray:
 
 
 def write_colmap_text_model(
-    folder: Path, width: int, height: int, intrinsics: np.ndarray, names: list[str], c2ws: np.ndarray,
-    points_xyz: np.ndarray, points_rgb: np.ndarray,
+    folder: Path,
+    width: int,
+    height: int,
+    intrinsics: np.ndarray,
+    names: list[str],
+    c2ws: np.ndarray,
+    points_xyz: np.ndarray,
+    points_rgb: np.ndarray,
 ) -> None:
     """A one-camera PINHOLE COLMAP text model (no 2D observations) for the given OpenCV camera-to-worlds."""
     folder.mkdir(parents=True, exist_ok=True)
@@ -341,7 +371,9 @@ def write_colmap_text_model(
         rot_cw = c2w[:3, :3].T
         t_cw = -rot_cw @ c2w[:3, 3]
         q = rotation_to_quaternion(rot_cw)
-        lines.append(" ".join([str(image_id), *(repr(float(v)) for v in q), *(repr(float(v)) for v in t_cw), "1", name]))
+        lines.append(
+            " ".join([str(image_id), *(repr(float(v)) for v in q), *(repr(float(v)) for v in t_cw), "1", name])
+        )
         lines.append("")
     (folder / "images.txt").write_text("\n".join(lines) + "\n")
     point_lines = ["# POINT3D_ID X Y Z R G B ERROR (no tracks: the points are sampled, not triangulated)"]
@@ -407,8 +439,13 @@ def ensure_demo_scene(spec: DemoSceneSpec, cache_dir: Path | None = None) -> Pat
     final = root / spec.key()
     if (final / "demo.json").is_file():
         return final
-    root.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=root, prefix=f".{spec.key()}."))
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(dir=root, prefix=f".{spec.key()}."))
+    except OSError as exc:
+        raise DataParserError(
+            f"cannot write the demo scene into {root} ({exc.strerror}): set {CACHE_ENV} to a writable folder"
+        ) from exc
     try:
         generate_demo_scene(spec, tmp / "scene")
         try:
@@ -454,6 +491,7 @@ class DemoDataParserConfig(Spars3rDataParserConfig):
             images_path=self.images_path,
             colmap_path=self.colmap_path,
             load_3d_points=self.load_3d_points,
+            masks_path=self.masks_path,
         )
         return Spars3rDataParser(parser_config)
 

@@ -58,7 +58,8 @@ def to_uint8(image: np.ndarray, path: str | Path = "<array>") -> np.ndarray:
         bad = ~np.isfinite(image)
         if bad.any():
             raise DataParserError(
-                f"image {path} has {int(bad.sum())} NaN/inf values: fix or re-export the file (expected values in [0,1])"
+                f"image {path} has {int(bad.sum())} NaN/inf values: fix or re-export the file "
+                "(expected values in [0,1])"
             )
         return np.round(np.clip(image, 0.0, 1.0) * 255.0).astype(np.uint8)
     raise DataParserError(f"image {path} has unsupported pixel type {image.dtype}: expected 8/16-bit or float")
@@ -74,7 +75,7 @@ def image_size(path: str | Path) -> tuple[int, int]:
 
         with Image.open(path) as handle:
             return int(handle.size[0]), int(handle.size[1])
-    except Exception:  # PIL cannot parse every format OpenCV reads (e.g. EXR): fall back to a full decode
+    except (OSError, ValueError):  # PIL cannot parse every format OpenCV reads (e.g. EXR): decode fully
         image = read_image(path)
         return int(image.shape[1]), int(image.shape[0])
 
@@ -144,25 +145,25 @@ def downscaled_paths(
 ) -> list[Path]:
     """Paths of ``image_paths`` downscaled ``factor`` times (``cv2.INTER_AREA``), creating missing ones.
 
-    Copies live in ``<images_dir name>_<factor>/`` (nerfstudio's layout) under :func:`derived_root`, keep the
-    relative path and the file name, and are reused when present. An existing ``images_N`` shipped next to the
-    images in the scene folder is used as is.
+    Copies live in ``<images_dir name>_<factor>/`` (nerfstudio's layout) and keep the relative path and file name.
+    A copy already next to the images (shipped with the scene, or written there by an earlier run) is used as is;
+    a missing one is written under :func:`derived_root`.
     """
     if factor == 1:
         return list(image_paths)
     import cv2
 
-    shipped = images_dir.parent / f"{images_dir.name}_{factor}"
-    root = shipped if shipped.is_dir() else derived_root(images_dir, cache_dir) / f"{images_dir.name}_{factor}"
+    folder = f"{images_dir.name}_{factor}"
+    beside = images_dir.parent / folder
+    derived = derived_root(images_dir, cache_dir) / folder
     out = []
     for path in image_paths:
-        target = root / Path(path).relative_to(images_dir)
+        relative = Path(path).relative_to(images_dir)
+        if cache_dir is None and (beside / relative).is_file():
+            out.append(beside / relative)
+            continue
+        target = derived / relative
         if not target.exists():
-            if shipped.is_dir():
-                raise DataParserError(
-                    f"{target} is missing from the scene's downscaled folder {shipped}: add it or delete {shipped} "
-                    "to have it regenerated"
-                )
             image = read_image(path)
             new_w, new_h = resized_size(image.shape[1], image.shape[0], factor)
             write_image_atomic(target, cv2.resize(image, (new_w, new_h), interpolation=cv2.INTER_AREA))

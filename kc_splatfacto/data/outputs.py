@@ -61,9 +61,13 @@ class DataparserOutputs:
         image_filenames: one image file per camera (only the split's images; nothing else is read).
         cameras: the split's cameras, in the normalized world.
         split: "train", "val" or "test".
-        scene_scale: radius of the normalized scene (nerfstudio's ``scale_factor`` makes the poses fit the unit cube;
-            Splatfacto's thresholds multiply this).
-        dataparser_transform: [3, 4] float32, the transform applied to the original poses (before scaling).
+        scene_scale: half-width of the origin-centred cube holding every normalized camera centre (train and eval):
+            1.0 whenever poses are auto-scaled (nerfstudio's ``auto_scale_poses``, the default), i.e. the unit in
+            which Splatfacto's size thresholds (densify/split/cull sizes, random init extent) are expressed; those
+            thresholds are multiplied by it.
+        dataparser_transform: [3, 4] float32, the transform applied to the original poses (before scaling): an
+            original world point ``p`` is at ``dataparser_scale * (dataparser_transform @ [p, 1])`` here
+            (nerfstudio's ``dataparser_transforms.json``; see ``kc_splatfacto.data.write_dataparser_transforms``).
         dataparser_scale: scale factor applied after ``dataparser_transform``.
         points3d_xyz: [M, 3] float32 seed points in the normalized world, or None.
         points3d_rgb: [M, 3] uint8 colours of the seed points, or None.

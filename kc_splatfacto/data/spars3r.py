@@ -38,15 +38,17 @@ class Spars3rDataParserConfig(DataParserConfig):
     """Model folder relative to ``data``; None tries sparse/0, then a single sparse_*/0."""
     load_3d_points: bool = True
     """Seed points from points3D."""
+    masks_path: Path | None = None
+    """Optional mask folder relative to ``data``: ``<masks_path>/<image name>.png``, white = use the pixel."""
 
-    def setup(self) -> "Spars3rDataParser":
+    def setup(self) -> Spars3rDataParser:
         return Spars3rDataParser(self)
 
 
 def find_first(scene: Path, names: tuple[str, ...], what: str, is_dir: bool = False) -> Path:
     for name in names:
         path = scene / name
-        if (path.is_dir() if is_dir else path.is_file()):
+        if path.is_dir() if is_dir else path.is_file():
             return path
     raise DataParserError(f"{scene} has no {what}: expected one of {', '.join(names)}")
 
@@ -135,7 +137,7 @@ def _spec():
 
     return DataParserSpecification(
         config=Spars3rDataParserConfig(),
-        description="SPARS3R sparse-view scene: images/, train_list.txt, test_list.txt, COLMAP sparse/0 (or sparse_*/0)",
+        description="SPARS3R sparse-view scene: images/, train_list.txt, test_list.txt, COLMAP sparse/0 or sparse_*/0",
     )
 
 

@@ -2,13 +2,16 @@
 
 Layout: ``<scene>/transforms.json`` (or ``--data path/to/file.json``), image paths in it relative to its folder::
 
-    {"camera_model": "OPENCV", "fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "p1", "p2",  (global or per frame)
-     "frames": [{"file_path": "images/0001.png", "transform_matrix": 4x4 camera-to-world, OpenGL axes, ...}],
+    {"camera_model": "OPENCV", "fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "p1", "p2",  (global/per frame)
+     "frames": [{"file_path": "images/0001.png", "transform_matrix": 4x4 camera-to-world, OpenGL axes,
+                 "mask_path": "masks/0001.png" (optional, white = use the pixel)}],
      "train_filenames": [...], "val_filenames": [...], "test_filenames": [...],   (optional, explicit splits)
      "ply_file_path": "sparse_pc.ply",                                            (optional seed points)
      "applied_transform": 3x4, "aabb_scale": ...}                                 (aabb_scale is ignored)
 
-Frames are sorted by file name (nerfstudio). Frames whose image file is missing are listed by name in one warning
+Blender-style files with only ``camera_angle_x`` (NeRF synthetic) work too: the focal length
+comes from it and the image width, the principal point is the image centre, and extension-less ``file_path``s are
+resolved to .png/.jpg. Frames are sorted by file name (nerfstudio). Frames whose image file is missing are listed by name in one warning
 and skipped. Without split lists the split follows ``eval_mode`` like the COLMAP parser; "val" falls back to the test
 list and "test" to the val list when only one is given. Distorted cameras (k1..p2) are undistorted with OpenCV and
 cached; ``camera_model`` other than OPENCV/PINHOLE/SIMPLE_PINHOLE (e.g. fisheye) is an error.
@@ -21,6 +24,7 @@ then maps the original capture's world (e.g. the COLMAP model ns-process-data co
 from __future__ import annotations
 
 import json
+import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,7 +41,8 @@ from kc_splatfacto.data.base import (
     opencv_to_opengl,
     scene_scale_of,
 )
-from kc_splatfacto.data.colmap import ColmapCamera, check_image_sizes, pinhole_images, split_indices
+from kc_splatfacto.data.colmap import ColmapCamera, check_image_sizes, pinhole_images, prepare_masks, split_indices
+from kc_splatfacto.data.images import image_size
 from kc_splatfacto.data.outputs import DataparserOutputs
 
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
@@ -56,7 +61,7 @@ class TransformsDataParserConfig(DataParserConfig):
     load_3d_points: bool = True
     """Seed points from ``ply_file_path`` when the file names one."""
 
-    def setup(self) -> "TransformsDataParser":
+    def setup(self) -> TransformsDataParser:
         return TransformsDataParser(self)
 
 
@@ -86,8 +91,26 @@ def _frame_value(frame: dict, meta: dict, key: str, json_path: Path, default=Non
     )
 
 
-def frame_camera(frame: dict, meta: dict, json_path: Path) -> ColmapCamera:
-    """The frame's camera (global values overridden per frame) as pinhole + OpenCV distortion."""
+def frame_camera(frame: dict, meta: dict, json_path: Path, image_path: Path | None = None) -> ColmapCamera:
+    """The frame's camera (global values overridden per frame) as pinhole + OpenCV distortion.
+
+    Blender-style files (NeRF synthetic) give only ``camera_angle_x``: then ``w``/``h`` come from the image header,
+    ``fl_x = fl_y = w / (2 tan(camera_angle_x / 2))`` and the principal point is the image centre.
+    """
+    has_focal = any(key in frame or key in meta for key in ("fl_x", "fl_y"))
+    if not has_focal and "camera_angle_x" in meta:
+        frame = dict(frame)
+        if "w" not in frame and "w" not in meta or "h" not in frame and "h" not in meta:
+            frame["w"], frame["h"] = image_size(image_path) if image_path is not None else (None, None)
+        width, height = (
+            float(_frame_value(frame, meta, "w", json_path)),
+            float(_frame_value(frame, meta, "h", json_path)),
+        )
+        focal = 0.5 * width / math.tan(0.5 * float(meta["camera_angle_x"]))
+        frame.setdefault("fl_x", focal)
+        frame.setdefault("fl_y", focal)
+        frame.setdefault("cx", _frame_value(frame, meta, "cx", json_path, width / 2.0))
+        frame.setdefault("cy", _frame_value(frame, meta, "cy", json_path, height / 2.0))
     values = {key: _frame_value(frame, meta, key, json_path) for key in INTRINSIC_KEYS}
     distortion = np.array([float(_frame_value(frame, meta, key, json_path, 0.0)) for key in DISTORTION_KEYS])
     camera = ColmapCamera(
@@ -145,7 +168,9 @@ class TransformsDataParser(DataParser):
                 raise DataParserError(f"{json_path}: every frame needs 'file_path' and 'transform_matrix'")
             path = base / frame["file_path"]
             if not path.is_file() and path.suffix == "":  # instant-ngp's Blender exports omit the extension
-                path = next((path.with_suffix(s) for s in (".png", ".jpg", ".jpeg") if path.with_suffix(s).is_file()), path)
+                path = next(
+                    (path.with_suffix(s) for s in (".png", ".jpg", ".jpeg") if path.with_suffix(s).is_file()), path
+                )
             (frames if path.is_file() else missing).append((path, frame))
         if missing:
             warnings.warn(
@@ -161,7 +186,9 @@ class TransformsDataParser(DataParser):
             raise DataParserError(f"{json_path}: transform_matrix must be 4x4 (or 3x4), got {c2w_gl.shape[1:]}")
         bad = [str(frames[i][1]["file_path"]) for i in range(len(frames)) if not np.isfinite(c2w_gl[i]).all()]
         if bad:
-            raise DataParserError(f"{json_path}: transform_matrix of {', '.join(bad)} contains NaN/inf: fix those frames")
+            raise DataParserError(
+                f"{json_path}: transform_matrix of {', '.join(bad)} contains NaN/inf: fix those frames"
+            )
         c2w_cv = opencv_to_opengl(c2w_gl)
 
         split_lists = {s: meta.get(f"{s}_filenames") for s in ("train", "val", "test")}
@@ -188,7 +215,7 @@ class TransformsDataParser(DataParser):
             chosen = {"train": train, "val": val or test, "test": test or val}[split]
             normalize_idx = sorted(set(train) | set(val) | set(test))
         else:
-            names = [str(p.relative_to(base)) for p in paths]
+            names = [str(frame["file_path"]) for _, frame in frames]
             train, evals = split_indices(
                 names, self.config.eval_mode, self.config.eval_interval, self.config.train_split_fraction
             )
@@ -198,13 +225,26 @@ class TransformsDataParser(DataParser):
             raise DataParserError(f"split '{split}' of {json_path} is empty: check its split lists / eval_mode")
 
         normalization = normalize_poses(
-            c2w_cv[normalize_idx], self.config.orientation_method, self.config.center_method, self.config.auto_scale_poses
+            c2w_cv[normalize_idx],
+            self.config.orientation_method,
+            self.config.center_method,
+            self.config.auto_scale_poses,
         )
         c2w_all = normalization.apply_to_c2w(c2w_cv)
-        cameras = [frame_camera(frames[i][1], meta, json_path) for i in chosen]
+        cameras = [frame_camera(frames[i][1], meta, json_path, paths[i]) for i in chosen]
         split_paths = [paths[i] for i in chosen]
         check_image_sizes(split_paths, cameras, [f"camera in {json_path.name}"] * len(chosen))
         metadata: dict = {"format": "nerfstudio-data", "skipped_frames": [str(f["file_path"]) for _, f in missing]}
+        with_masks = ["mask_path" in frames[i][1] for i in chosen]
+        mask_paths = None
+        if any(with_masks):
+            if not all(with_masks):
+                raise DataParserError(
+                    f"{json_path}: some frames of split '{split}' have a mask_path and others do not: give every "
+                    "frame a mask or none"
+                )
+            mask_paths = [base / frames[i][1]["mask_path"] for i in chosen]
+            mask_paths = prepare_masks(self.config, mask_paths, cameras, [p.parent for p in mask_paths], metadata)
         split_paths, intrinsics, sizes = pinhole_images(
             self.config, split_paths, cameras, [p.parent for p in split_paths], metadata
         )
@@ -216,6 +256,7 @@ class TransformsDataParser(DataParser):
             transform = transform @ applied4
         outputs = DataparserOutputs(
             image_filenames=split_paths,
+            mask_filenames=mask_paths,
             cameras=make_cameras(c2w_all[chosen], intrinsics, sizes[:, 0], sizes[:, 1]),
             split=split,
             scene_scale=scene_scale_of(c2w_all[normalize_idx]),

@@ -1,6 +1,6 @@
 """Evaluation of a split: PSNR and SSIM per image and their means; LPIPS only where its weights exist offline.
 
-SSIM convention: kornia's Gaussian-window SSIM (window 11, sigma 1.5, 'same' padding), averaged over the image, as
+SSIM convention: kornia's Gaussian-window SSIM (window 11, sigma 1.5, reflect 'same' padding), averaged over the image, as
 ``kc_splatfacto.losses.photometric.ssim`` computes it (nerfstudio's torchmetrics SSIM uses 'valid' windows instead; the
 two differ slightly near borders).
 """
@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-SSIM_CONVENTION = "kornia ssim, gaussian window 11, sigma 1.5, same padding, image mean"
+SSIM_CONVENTION = "kornia ssim, gaussian window 11, sigma 1.5, reflect same padding, image mean"
 
 
 def lpips_metric() -> tuple[Any | None, str | None]:
@@ -36,6 +36,12 @@ def lpips_metric() -> tuple[Any | None, str | None]:
         return net.to(pred.device)(pred * 2 - 1, gt * 2 - 1).mean()
 
     return compute, None
+
+
+def _image_name(dataset, index: int) -> str | None:
+    outputs = getattr(dataset, "outputs", None)
+    names = getattr(outputs, "image_filenames", None) or getattr(dataset, "image_filenames", None)
+    return str(names[index]) if names is not None else None
 
 
 def _mean_std(values: list[float]) -> tuple[float | None, float | None]:
@@ -76,7 +82,7 @@ def evaluate_split(model, dataset, *, with_lpips: bool = True) -> dict[str, Any]
                 raise ValueError(f"image {index}: render {tuple(pred.shape)} and ground truth {tuple(gt.shape)} differ")
             record = {
                 "index": index,
-                "image": str(dataset.image_filenames[index]) if hasattr(dataset, "image_filenames") else None,
+                "image": _image_name(dataset, index),
                 "psnr": float(psnr(pred, gt)),
                 "ssim": float(ssim(pred, gt)),
                 "lpips": float(lpips_fn(pred, gt)) if lpips_fn is not None else None,

@@ -25,8 +25,12 @@ class AdamOptimizerConfig:
     eps: float = ADAM_EPS
     weight_decay: float = 0.0
 
+    fused: bool = True
+    """torch's fused Adam kernel (CPU and CUDA; same update, ~5x faster than the per-tensor loop on CPU here)"""
+
     def setup(self, params: list[torch.nn.Parameter]) -> torch.optim.Adam:
-        return torch.optim.Adam(params, lr=self.lr, eps=self.eps, weight_decay=self.weight_decay)
+        return torch.optim.Adam(params, lr=self.lr, eps=self.eps, weight_decay=self.weight_decay,
+                                fused=self.fused or None)
 
 
 @dataclass

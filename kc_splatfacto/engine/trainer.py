@@ -5,8 +5,8 @@ Step convention: ``step`` in checkpoints and ``metrics.jsonl`` is the number of 
 iteration ``model.step`` is the 0-based index of the step being taken, which every schedule reads.
 
 Stiff cases: a non-finite render, loss or gradient skips the step (no update, no density-control statistics; the
-learning-rate schedule still advances so the run keeps its length); Gaussians whose parameters became non-finite are
-removed. Each is a ``bad_step`` record. After ``max_consecutive_bad_steps`` in a row the state (still the last good
+learning-rate schedule still advances so the run keeps its length); Gaussians whose parameters are non-finite at the
+start of a step are removed (with their optimizer state) and that step is skipped. Each is a ``bad_step`` record. After ``max_consecutive_bad_steps`` in a row the state (still the last good
 one, since bad updates were never applied) is saved and :class:`TrainingDivergedError` raised. Ctrl-C (SIGINT) ends
 the current step, saves a checkpoint and returns cleanly.
 
@@ -38,6 +38,9 @@ from kc_splatfacto.model.strategy import NoGaussiansLeftError
 GRAD_OVERFLOW = 1e18
 """a gradient this large would overflow Adam's squared-gradient average in float32 (1e36 < 3.4e38 just fits)"""
 PHASES = ("render", "losses", "backward", "optimizer", "density_control")
+
+# a skipped (non-finite) step still advances the schedules, which torch reports as a misuse; it is deliberate here
+warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step\\(\\)` before `optimizer.step\\(\\)`")
 
 
 class TrainingDivergedError(RuntimeError):
@@ -205,7 +208,7 @@ class Trainer:
                            "reason": reason, "consecutive": self._bad_in_a_row})
         warnings.warn(f"step {step}: {reason}; step skipped", RuntimeWarning, stacklevel=2)
         if self._bad_in_a_row >= self.config.max_consecutive_bad_steps:
-            path = self.save_checkpoint(step - 1 if step > 0 else 0)
+            path = self.save_checkpoint(step)  # bad updates were never applied: this is the last good state
             raise TrainingDivergedError(
                 f"{self._bad_in_a_row} consecutive bad steps (last: {reason}) at step {step}: training stopped. "
                 f"The last good state is saved in {path}. Lower the loss weights or the learning rates "
@@ -240,12 +243,20 @@ class Trainer:
         model = self.model
         model.step = step
         index, camera, image = self.datamanager.next_train()
-        t = time.perf_counter()
-        outputs = model.get_outputs(camera)
-        t = self._tick("render", t)
         bad = None
         loss_dict: dict[str, torch.Tensor] = {}
-        if not bool(torch.isfinite(outputs["rgb"]).all()):
+        t = time.perf_counter()
+        removed = self._remove_non_finite_gaussians()
+        t = self._tick("optimizer", t)
+        if removed:
+            bad = f"non-finite parameters: {removed} Gaussians removed"
+            outputs = None
+        else:
+            outputs = model.get_outputs(camera)
+            t = self._tick("render", t)
+        if bad is not None:
+            pass
+        elif not bool(torch.isfinite(outputs["rgb"]).all()):
             bad = "non-finite render"
         else:
             loss_dict = model.get_loss_dict(outputs, {"image": image, "image_idx": index})
@@ -261,16 +272,12 @@ class Trainer:
             for optimizer in self.optimizers.values():
                 optimizer.step()
                 optimizer.zero_grad(set_to_none=True)
-            removed = self._remove_non_finite_gaussians()
             t = self._tick("optimizer", t)
-            if removed:
-                bad = f"non-finite parameters after the update: {removed} Gaussians removed"
-            else:
-                report = model.step_post_backward(self.optimizers, step)
-                t = self._tick("density_control", t)
-                if any(report.values()):
-                    self.writer.write({"kind": "densify", "step": step + 1, "elapsed_s": self._elapsed(),
-                                       "train_s": self._train_s, "gaussian_count": model.num_points, **report})
+            report = model.step_post_backward(self.optimizers, step)
+            t = self._tick("density_control", t)
+            if any(report.values()):
+                self.writer.write({"kind": "densify", "step": step + 1, "elapsed_s": self._elapsed(),
+                                   "train_s": self._train_s, "gaussian_count": model.num_points, **report})
         for scheduler in self.schedulers.values():
             scheduler.step()
         self.phase_steps += 1
@@ -278,7 +285,7 @@ class Trainer:
             self._bad_step(step + 1, bad)
             return {}
         self._bad_in_a_row = 0
-        result = {k: float(v) for k, v in loss_dict.items()}
+        result = {k: float(v.detach()) for k, v in loss_dict.items()}
         result["loss"] = sum(result.values())
         self._last_outputs, self._last_batch = outputs, {"image": image, "image_idx": index}
         return result
@@ -296,8 +303,7 @@ class Trainer:
         bar = ProgressBar(cfg.max_num_iterations, self.start_step, enabled=cfg.logging.progress_bar)
         step = self.start_step
         try:
-            with warnings.catch_warnings():
-                warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step()`")
+            if True:  # (no warnings.catch_warnings here: mutating filters re-enables once-only warnings every step)
                 if step == 0 and 0 in cfg.eval_at_steps:
                     self.evaluate(0)
                 losses: dict[str, float] = {}

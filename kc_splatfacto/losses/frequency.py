@@ -4,14 +4,17 @@ Notation: c^j_o is the detail subband of level j (1 = finest) and orientation o 
 detail subbands in the order (level 1: H, V, D), (level 2: H, V, D), ...; every statistic is per image and channel.
 
 - wavelet_l1      = sum_j w_j sum_o mean|c^j_o(pred) - c^j_o(gt)|,  w_j = 2^j ("paper"), 2^(J-j+1) ("fine"), 1 ("uniform")
-- band_kurtosis   k_b = m4_b / (m2_b + eps)^2 - 3, m_k the central moments of subband b (scipy's biased Fisher kurtosis)
+- band_kurtosis   k_b = m4_b / (m2_b + eps s^2)^2 - 3, m_k the central moments of subband b (scipy's biased Fisher
+                  kurtosis), s^2 the image's mean coefficient power (detached), eps = 1e-12
 - kurtosis_spread = max_b k_b - min_b k_b
 - kc_loss         = |spread(pred) - spread(gt)| + sum_b |k_b(pred) - k_b(gt)|        (unsupervised: spread(pred))
 - covariance      Sigma^j = Z Z^T / (P - 1), Z the centred, flattened [3, P] stack of (H, V, D) of level j
-                  (correlation option: Sigma_uv / sqrt((Sigma_uu + eps)(Sigma_vv + eps)))
+                  (correlation option: Sigma_uv / sqrt((Sigma_uu + eps s^2)(Sigma_vv + eps s^2)))
 - L_cov           = sum_j ||Sigma^j - diag(Sigma^j)||_F^2
 - cbc_loss        = |L_cov(pred) - L_cov(gt)|                                         (unsupervised: L_cov(pred))
-The kc and cbc terms are averaged over images and channels. `docs/losses.md` explains the choices (weighting, eps).
+The kc and cbc terms are averaged over images and channels. An image too small for any level has no detail band:
+every term is then 0 (still attached to pred's graph, with a zero gradient). `docs/losses.md` explains the choices
+(weighting, padding, eps).
 
 The ground truth never needs gradients: `prepare_target(gt)` computes its coefficients and statistics once, detached,
 as a `WaveletTarget` that every loss here accepts in place of the gt image, so a trainer can cache it per image.
@@ -19,28 +22,35 @@ as a `WaveletTarget` that every loss here accepts in place of the gt image, so a
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from kc_splatfacto.losses.wavelets import MODES, WaveletCoeffs, dwt2
 
 WEIGHTINGS = ("paper", "fine", "uniform")
-# eps on a band's variance, relative to the image's mean power (mean square over all its wavelet coefficients, which
-# by Parseval is ~ the mean square pixel). 1e-12 in variance = a standard deviation of 1e-6 of the signal's RMS: ~10x
-# above float32 rounding noise of the transform and ~4000x below an 8-bit quantization step, so every real band is
-# untouched (a sigma-3 blurred photo's finest diagonal band, std 2e-5 RMS, keeps its kurtosis to 1%), while a
-# constant or rounding-noise band (variance ~0) gets kurtosis -3 with a bounded gradient instead of 0/0. Being
-# relative, it keeps every statistic exactly scale-invariant (intensities x1e4 or x1e-6 give the same kurtosis).
-# docs/losses.md has the measured sweep.
+# Every statistic is computed on the bands divided by the image's RMS coefficient magnitude s (detached; by Parseval
+# ~ the RMS pixel): kurtosis and correlation do not depend on scale, and covariance is s^2 cov(c / s) exactly, so
+# nothing changes mathematically, but every intermediate is O(1) whatever the intensity scale (x1e4, x1e-6), and the
+# backward of rsqrt(m2 + eps) stays far from float32 overflow even for an all-black image.
+# eps on a normalized band's variance: 1e-12 = a standard deviation of 1e-6 of the image's RMS, ~10x above float32
+# rounding noise of the transform and ~4000x below an 8-bit quantization step. Every real band is untouched (a
+# sigma-3 blurred photo's finest diagonal band, std 2e-5 RMS, keeps its kurtosis to 1%), while a constant or
+# rounding-noise band (variance ~0) gets kurtosis -3 with a bounded gradient instead of 0/0. docs/losses.md has the
+# measured sweep.
 VARIANCE_REL_EPS = 1e-12
-# Absolute floor for an all-zero image (mean power 0), far above float32's smallest normal (~1e-38) when squared.
-VARIANCE_ABS_EPS = 1e-30
+# Floor of the image power s^2, only active for an all-zero image (then every band is 0 and s only has to be > 0).
+POWER_FLOOR = 1e-30
 
 
 def _check_finite(x: Tensor, name: str) -> None:
-    if not bool(torch.isfinite(x).all()):
+    # one reduction pass: a NaN/Inf anywhere makes the sum non-finite (only then is the exact check needed); the sum
+    # is float32 at least, so a large half-precision image does not overflow into the slow path
+    total = x.sum(dtype=torch.float32) if x.dtype in (torch.float16, torch.bfloat16) else x.sum()
+    if not bool(torch.isfinite(total)) and not bool(torch.isfinite(x).all()):
         raise ValueError(
             f"'{name}' contains NaN or Inf values; the frequency losses need finite images "
             f"(check the renderer output / the loaded image for '{name}')"
@@ -68,45 +78,88 @@ def level_weights(levels: int, weighting: str = "paper") -> list[float]:
 # --------------------------------------------------------------------------------------------------- statistics
 
 
-def _variance_eps(coeffs: WaveletCoeffs) -> Tensor:
-    """[B, C, 1] eps on a band's variance: VARIANCE_REL_EPS times the image's mean coefficient power (detached)."""
+def _image_power(coeffs: WaveletCoeffs) -> Tensor:
+    """[B, C, 1] mean square over all the image's coefficients (approx and details), detached, floored."""
     with torch.no_grad():
         total = coeffs.approx.square().sum(dim=(-2, -1))
         count = coeffs.approx.shape[-2] * coeffs.approx.shape[-1]
         for band in coeffs.details:
-            total = total + band.square().sum(dim=(-4, -2, -1))
+            total = total + torch.linalg.vector_norm(band, dim=(-3, -2, -1)).square()
             count += band.shape[-3] * band.shape[-2] * band.shape[-1]
-        return (VARIANCE_REL_EPS * total / count + VARIANCE_ABS_EPS).unsqueeze(-1)
+        return (total / count).clamp_min(POWER_FLOOR).unsqueeze(-1)
 
 
-def _centred_levels(coeffs: WaveletCoeffs) -> list[Tensor]:
-    """Per level, the centred flattened subbands [B, C, 3, P_j]."""
-    centred = []
-    for band in coeffs.details:
-        flat = band.flatten(-2)
-        centred.append(flat - flat.mean(dim=-1, keepdim=True))
-    return centred
+class _CentredMoments(torch.autograd.Function):
+    """Moments of centred, RMS-normalized subbands z = (x - mean(x)) / s of one level, with an analytic backward.
+
+    x [N, 3, P] -> m2 [N, 3] = mean z^2, m4 [N, 3] = mean z^4 (if wanted), cov [N, 3, 3] = z z^T / (P - 1) (if wanted).
+    Backward: dz = z (2 g2 + 4 g4 z^2) / P + (G + G^T) z / (P - 1), then dx = (dz - mean(dz)) / s. That is ~5 passes
+    over the band where autograd through the elementwise chain takes ~12 (the losses' main cost after the DWT).
+    s is a detached constant.
+    """
+
+    @staticmethod
+    def forward(ctx, flat: Tensor, inv_rms: Tensor, want_m4: bool, want_cov: bool):
+        count = flat.shape[-1]
+        z = torch.addcmul(-flat.mean(dim=-1, keepdim=True) * inv_rms, flat, inv_rms)  # (x - mean) / s, fused
+        m2 = torch.linalg.vecdot(z, z) / count
+        m4 = cov = z2 = None
+        if want_m4:
+            z2 = z.square()  # kept for the backward: saves two passes there
+            m4 = torch.linalg.vecdot(z2, z2) / count
+        if want_cov:
+            cov = torch.matmul(z, z.transpose(-1, -2)) / max(count - 1, 1)  # numpy.cov's (P - 1) normalization
+        ctx.save_for_backward(z, z2, inv_rms)
+        return m2, m4, cov
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_m2, grad_m4, grad_cov):
+        z, z2, inv_rms = ctx.saved_tensors
+        count = z.shape[-1]
+        # the 1/s of dx = (dz - mean(dz)) / s is folded into the small coefficients, not applied to the band
+        scale = inv_rms.squeeze(-1)  # [..., 1]
+        coef2 = ((2.0 / count) * grad_m2 * scale).unsqueeze(-1) if grad_m2 is not None else None
+        if grad_m4 is not None:
+            coef4 = ((4.0 / count) * grad_m4 * scale).unsqueeze(-1)
+            grad = torch.addcmul(coef2, z2, coef4) if coef2 is not None else z2 * coef4
+            grad.mul_(z)
+        elif coef2 is not None:
+            grad = z * coef2
+        else:
+            grad = torch.zeros_like(z)
+        if grad_cov is not None:
+            sym = (grad_cov + grad_cov.transpose(-1, -2)) * (inv_rms / max(count - 1, 1))
+            matrix = z.shape[-2:]
+            grad.view(-1, *matrix).baddbmm_(sym.reshape(-1, 3, 3), z.reshape(-1, *matrix))
+        grad.sub_(grad.mean(dim=-1, keepdim=True))
+        return grad, None, None, None
 
 
-def _kurtosis_from_centred(centred: list[Tensor], eps: Tensor) -> Tensor:
-    kurtosis = []
-    for z in centred:
-        m2 = z.square().mean(dim=-1)  # [B, C, 3]
-        # standardize first: (z / sqrt(m2 + eps))^4 keeps the 4th power in range where z^4 would underflow
-        standardized = z * torch.rsqrt(m2 + eps).unsqueeze(-1)
-        kurtosis.append(standardized.square().square().mean(dim=-1) - 3.0)
+def _level_moments(coeffs: WaveletCoeffs, want_m4: bool, want_cov: bool) -> tuple[list[tuple], Tensor]:
+    """Per level (m2 [B, C, 3], m4 or None, cov [B, C, 3, 3] or None) of the RMS-normalized centred subbands,
+    and the image power s^2 [B, C, 1] they are normalized by."""
+    power = _image_power(coeffs)
+    inv_rms = torch.rsqrt(power).unsqueeze(-1)  # [B, C, 1, 1]
+    moments = [_CentredMoments.apply(band.flatten(-2), inv_rms, want_m4, want_cov) for band in coeffs.details]
+    return moments, power
+
+
+def _kurtosis_from_moments(moments: list[tuple], like: Tensor) -> Tensor:
+    # the moments are O(1) (normalized by the image RMS), so m4 neither overflows nor underflows where it matters
+    kurtosis = [m4 / (m2 + VARIANCE_REL_EPS).square() - 3.0 for m2, m4, _ in moments]
     if not kurtosis:
-        return eps.new_zeros((*eps.shape[:-1], 0))
+        return like.new_zeros((*like.shape[:2], 0))
     return torch.cat(kurtosis, dim=-1)
 
 
 def band_kurtosis(coeffs: WaveletCoeffs) -> Tensor:
     """Excess (Fisher, biased) kurtosis of every detail subband: [B, C, 3J], bands ordered level-major (H, V, D).
 
-    k_b = m4_b / (m2_b + eps)^2 - 3 with central moments m_k; equals `scipy.stats.kurtosis(band, fisher=True,
-    bias=True)` up to the relative eps (a constant band gives -3, not NaN).
+    k_b = m4_b / (m2_b + eps s^2)^2 - 3 with central moments m_k and s^2 the image's mean coefficient power; equals
+    `scipy.stats.kurtosis(band, fisher=True, bias=True)` up to the relative eps (a constant band gives -3, not NaN).
     """
-    return _kurtosis_from_centred(_centred_levels(coeffs), _variance_eps(coeffs))
+    return _kurtosis_from_moments(_level_moments(coeffs, True, False)[0], coeffs.approx)
 
 
 def kurtosis_spread(kurtosis: Tensor) -> Tensor:
@@ -116,15 +169,14 @@ def kurtosis_spread(kurtosis: Tensor) -> Tensor:
     return kurtosis.amax(dim=-1) - kurtosis.amin(dim=-1)
 
 
-def _covariances_from_centred(centred: list[Tensor], eps: Tensor, correlation: bool) -> list[Tensor]:
+def _covariances_from_moments(moments: list[tuple], power: Tensor, correlation: bool) -> list[Tensor]:
     covariances = []
-    for z in centred:
-        count = z.shape[-1]
-        cov = z @ z.transpose(-1, -2) / max(count - 1, 1)  # [B, C, 3, 3]; numpy.cov's (P - 1) normalization
+    for _, _, cov in moments:
         if correlation:
-            var = torch.diagonal(cov, dim1=-2, dim2=-1) + eps  # eps is a variance too (same scale)
-            inv_std = torch.rsqrt(var)
+            inv_std = torch.rsqrt(torch.diagonal(cov, dim1=-2, dim2=-1) + VARIANCE_REL_EPS)
             cov = cov * inv_std.unsqueeze(-1) * inv_std.unsqueeze(-2)
+        else:
+            cov = cov * power.unsqueeze(-1)  # undo the normalization: cov(c) = s^2 cov(c / s)
         covariances.append(cov)
     return covariances
 
@@ -134,7 +186,7 @@ def cross_band_covariance(coeffs: WaveletCoeffs, correlation: bool = False) -> l
 
     Equals `numpy.cov(np.stack([cH, cV, cD]).reshape(3, -1))` (correlation: `numpy.corrcoef`, up to eps).
     """
-    return _covariances_from_centred(_centred_levels(coeffs), _variance_eps(coeffs), correlation)
+    return _covariances_from_moments(*_level_moments(coeffs, False, True), correlation)
 
 
 def _off_diagonal_energy(covariances: list[Tensor], like: Tensor) -> Tensor:
@@ -171,7 +223,7 @@ class WaveletTarget:
     correlation: bool
     image_shape: tuple[int, int, int, int]
 
-    def to(self, *args, **kwargs) -> "WaveletTarget":
+    def to(self, *args, **kwargs) -> WaveletTarget:
         return WaveletTarget(
             coeffs=self.coeffs.to(*args, **kwargs),
             kurtosis=self.kurtosis.to(*args, **kwargs),
@@ -196,10 +248,9 @@ def prepare_target(
     _check_image(gt, "gt")
     with torch.no_grad():
         coeffs = dwt2(gt.detach(), wave=wave, levels=levels, mode=mode)
-        centred = _centred_levels(coeffs)
-        eps = _variance_eps(coeffs)
-        kurtosis = _kurtosis_from_centred(centred, eps)
-        l_cov = _off_diagonal_energy(_covariances_from_centred(centred, eps, correlation), coeffs.approx)
+        moments, power = _level_moments(coeffs, True, True)
+        kurtosis = _kurtosis_from_moments(moments, coeffs.approx)
+        l_cov = _off_diagonal_energy(_covariances_from_moments(moments, power, correlation), coeffs.approx)
     return WaveletTarget(
         coeffs=coeffs,
         kurtosis=kurtosis,
@@ -213,10 +264,20 @@ def prepare_target(
     )
 
 
+def _check_target_settings(target: WaveletTarget, wave: str, levels: int, mode: str, correlation: bool) -> None:
+    if (target.wave, target.levels, target.mode, target.correlation) != (wave, levels, mode, correlation):
+        raise ValueError(
+            f"the cached WaveletTarget was prepared with wave={target.wave}, levels={target.levels}, "
+            f"mode={target.mode}, correlation={target.correlation}, but the loss uses wave={wave}, levels={levels}, "
+            f"mode={mode}, correlation={correlation}: prepare the target with the loss's own settings"
+        )
+
+
 def _as_coeffs(x, name: str, wave: str, levels: int, mode: str) -> WaveletCoeffs:
     if isinstance(x, WaveletCoeffs):
         return x
     if isinstance(x, WaveletTarget):
+        _check_target_settings(x, wave, levels, mode, x.correlation)  # correlation only matters for L_cov
         return x.coeffs
     _check_image(x, name)
     return dwt2(x, wave=wave, levels=levels, mode=mode)
@@ -224,12 +285,7 @@ def _as_coeffs(x, name: str, wave: str, levels: int, mode: str) -> WaveletCoeffs
 
 def _as_target(gt, wave: str, levels: int, mode: str, correlation: bool) -> WaveletTarget:
     if isinstance(gt, WaveletTarget):
-        if (gt.wave, gt.levels, gt.mode, gt.correlation) != (wave, levels, mode, correlation):
-            raise ValueError(
-                f"the cached WaveletTarget was prepared with wave={gt.wave}, levels={gt.levels}, mode={gt.mode}, "
-                f"correlation={gt.correlation}, but the loss uses wave={wave}, levels={levels}, mode={mode}, "
-                f"correlation={correlation}: prepare the target with the loss's own settings"
-            )
+        _check_target_settings(gt, wave, levels, mode, correlation)
         return gt
     if isinstance(gt, WaveletCoeffs):
         raise TypeError("pass the gt as an image [B, C, H, W] or a WaveletTarget (from prepare_target), not coeffs")
@@ -247,12 +303,19 @@ def _check_same_layout(pred: WaveletCoeffs, gt: WaveletCoeffs) -> None:
 # --------------------------------------------------------------------------------------------------- losses
 
 
+def _no_band_loss(pred: WaveletCoeffs) -> Tensor:
+    """0 attached to pred's graph: the loss of an image too small for any DWT level (backward gives zeros)."""
+    return pred.approx.sum() * 0.0
+
+
 def _wavelet_l1_coeffs(pred: WaveletCoeffs, gt: WaveletCoeffs, weighting: str) -> Tensor:
+    if pred.levels == 0:
+        return _no_band_loss(pred)
     weights = level_weights(pred.levels, weighting)
     loss = pred.approx.new_zeros(())
     for weight, band_pred, band_gt in zip(weights, pred.details, gt.details):
         # sum over the 3 orientations of each one's mean = 3 * mean over the level's [B, C, 3, h, w]
-        loss = loss + (weight * 3.0) * (band_pred - band_gt).abs().mean()
+        loss = loss + (weight * 3.0) * F.l1_loss(band_pred, band_gt)
     return loss
 
 
@@ -278,12 +341,15 @@ def kc_loss(
     supervised: |spread(pred) - spread(gt)| + sum_b |k_b(pred) - k_b(gt)|; unsupervised (gt unused): spread(pred).
     """
     pred_c = _as_coeffs(pred, "pred", wave, levels, mode)
+    if pred_c.levels == 0:
+        return _no_band_loss(pred_c)
     k_pred = band_kurtosis(pred_c)
     if not supervised:
         return kurtosis_spread(k_pred).mean()
     if gt is None:
         raise ValueError("the supervised kc_loss needs gt (an image or a WaveletTarget); or pass supervised=False")
     if isinstance(gt, WaveletTarget):
+        _check_target_settings(gt, wave, levels, mode, gt.correlation)
         k_gt, spread_gt = gt.kurtosis, gt.spread
     else:
         gt_c = _as_coeffs(gt, "gt", wave, levels, mode).detach()
@@ -313,14 +379,15 @@ def cbc_loss(
     supervised: |L_cov(pred) - L_cov(gt)|; unsupervised (gt unused): L_cov(pred).
     """
     pred_c = _as_coeffs(pred, "pred", wave, levels, mode)
+    if pred_c.levels == 0:
+        return _no_band_loss(pred_c)
     l_pred = covariance_penalty(pred_c, correlation)
     if not supervised:
         return l_pred.mean()
     if gt is None:
         raise ValueError("the supervised cbc_loss needs gt (an image or a WaveletTarget); or pass supervised=False")
     if isinstance(gt, WaveletTarget):
-        if gt.correlation != correlation:
-            raise ValueError(f"the WaveletTarget holds L_cov with correlation={gt.correlation}, not {correlation}")
+        _check_target_settings(gt, wave, levels, mode, correlation)
         l_gt = gt.l_cov
     else:
         l_gt = covariance_penalty(_as_coeffs(gt, "gt", wave, levels, mode).detach(), correlation)
@@ -356,7 +423,7 @@ class FrequencyLoss(nn.Module):
             raise ValueError(f"unknown mode '{mode}': use one of {MODES}")
         level_weights(0, weighting)
         for name, weight in (("wavelet_weight", wavelet_weight), ("kc_weight", kc_weight), ("cbc_weight", cbc_weight)):
-            if not weight >= 0:
+            if not (math.isfinite(weight) and weight >= 0):
                 raise ValueError(f"{name} must be a finite non-negative number, got {weight}")
         dwt2(torch.zeros(1, 1, 1, 1), wave=wave, levels=0)  # validates the wavelet name now, not at step 1
         self.wavelet_weight = float(wavelet_weight)
@@ -393,17 +460,22 @@ class FrequencyLoss(nn.Module):
             raise ValueError(
                 f"pred {tuple(pred.shape)} and target {tuple(target.image_shape)} must have the same [B, C, H, W]"
             )
-        if target.device != pred.device:
-            target = target.to(pred.device)
         coeffs = dwt2(pred, wave=self.wave, levels=self.levels, mode=self.mode)
+        reference = coeffs.approx
+        if target.device != reference.device or target.coeffs.approx.dtype != reference.dtype:
+            target = target.to(device=reference.device, dtype=reference.dtype)  # e.g. a float64 or CPU cache
         losses: dict[str, Tensor] = {}
         if self.wavelet_weight > 0:
             losses["wavelet_loss"] = self.wavelet_weight * _wavelet_l1_coeffs(coeffs, target.coeffs, self.weighting)
-        if self.kc_weight > 0 or self.cbc_weight > 0:
-            centred = _centred_levels(coeffs)
-            eps = _variance_eps(coeffs)
+        if coeffs.levels == 0:  # too small for any level: every active term is an attached 0
+            zero = _no_band_loss(coeffs)
+            for key, weight in (("kc_loss", self.kc_weight), ("cbc_loss", self.cbc_weight)):
+                if weight > 0:
+                    losses[key] = zero
+        elif self.kc_weight > 0 or self.cbc_weight > 0:
+            moments, power = _level_moments(coeffs, self.kc_weight > 0, self.cbc_weight > 0)
             if self.kc_weight > 0:
-                k_pred = _kurtosis_from_centred(centred, eps)
+                k_pred = _kurtosis_from_moments(moments, coeffs.approx)
                 if self.kc_supervised:
                     kc = _kc_from_kurtosis(k_pred, target.kurtosis, target.spread)
                 else:
@@ -411,7 +483,7 @@ class FrequencyLoss(nn.Module):
                 losses["kc_loss"] = self.kc_weight * kc
             if self.cbc_weight > 0:
                 l_pred = _off_diagonal_energy(
-                    _covariances_from_centred(centred, eps, self.cbc_correlation), coeffs.approx
+                    _covariances_from_moments(moments, power, self.cbc_correlation), coeffs.approx
                 )
                 cbc = (l_pred - target.l_cov).abs().mean() if self.cbc_supervised else l_pred.mean()
                 losses["cbc_loss"] = self.cbc_weight * cbc

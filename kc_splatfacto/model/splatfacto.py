@@ -53,6 +53,8 @@ class SplatfactoModelConfig:
     densify_size_thresh: float = 0.01
     """below this size (x scene scale) Gaussians are duplicated, otherwise split"""
     n_split_samples: int = 2
+    max_num_gaussians: int | None = 2_000_000
+    """cap on densification (not in Splatfacto): beyond it only the highest-gradient candidates grow; None: no cap"""
     sh_degree_interval: int = 1000
     """every this many steps turn on another SH degree"""
     cull_screen_size: float = 0.15
@@ -174,6 +176,7 @@ class SplatfactoModel(torch.nn.Module):
             pause_refine_after_reset=min(self.num_train_data + refine_every, reset_every // 2),
             absgrad=config.use_absgrad,
             n_split_samples=config.n_split_samples,
+            max_gaussians=config.max_num_gaussians,
         )
         self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene_scale)
         self.step = 0
@@ -392,16 +395,10 @@ class SplatfactoModel(torch.nn.Module):
 
     def band_kurtosis(self, image: torch.Tensor) -> list[float]:
         """Excess kurtosis of every detail subband of ``image`` [H, W, 3], channel-averaged: 3 x levels values."""
-        import warnings
+        from kc_splatfacto.losses.frequency import band_kurtosis_for_logging
 
-        from kc_splatfacto.losses.frequency import band_kurtosis
-        from kc_splatfacto.losses.wavelets import dwt2
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # a small training resolution drops levels: warned once elsewhere
-            coeffs = dwt2(image.permute(2, 0, 1)[None].float(), wave=self.config.wave,
-                          levels=self.config.wavelet_levels, mode=self.config.wavelet_mode)
-        return [float(v) for v in band_kurtosis(coeffs)[0].mean(dim=0)]
+        return band_kurtosis_for_logging(image.float(), self.config.wave, self.config.wavelet_levels,
+                                         self.config.wavelet_mode)
 
     # ----------------------------------------------------------------------------------------------- density control
     def step_post_backward(self, optimizers: dict[str, torch.optim.Optimizer], step: int) -> dict[str, int]:

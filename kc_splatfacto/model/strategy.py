@@ -56,6 +56,10 @@ class DefaultStrategy:
     absgrad: bool = False
     revised_opacity: bool = False
     n_split_samples: int = 2
+    max_gaussians: int | None = None
+    """growth cap (not in gsplat's DefaultStrategy): when a refinement would exceed it, only the candidates with the
+    largest accumulated gradient grow. Guards small machines against runaway densification (tiny images give every
+    Gaussian a large 2D gradient, and the count doubles at each refinement until memory runs out)."""
     key_for_gradient: str = "means2d"
 
     def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]:
@@ -149,6 +153,9 @@ class DefaultStrategy:
         is_split = is_grad_high & ~is_small
         if step < self.refine_scale2d_stop_iter:
             is_split |= state["radii"] > self.grow_scale2d
+        if self.max_gaussians is not None:
+            is_dupli, is_split = self._cap_growth(grads, is_dupli, is_split, len(params["means"]))
+            n_dupli = int(is_dupli.sum())
         n_split = int(is_split.sum())
         if n_dupli > 0:
             ops.duplicate(params, optimizers, state, is_dupli)
@@ -157,6 +164,19 @@ class DefaultStrategy:
         if n_split > 0:
             ops.split(params, optimizers, state, is_split, self.n_split_samples, self.revised_opacity)
         return n_dupli, n_split
+
+    def _cap_growth(
+        self, grads: torch.Tensor, is_dupli: torch.Tensor, is_split: torch.Tensor, n_gaussian: int
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Keep the highest-gradient candidates whose added Gaussians fit under ``max_gaussians``."""
+        budget = max(self.max_gaussians - n_gaussian, 0)
+        cost = is_dupli.long() + is_split.long() * (self.n_split_samples - 1)
+        if int(cost.sum()) <= budget:
+            return is_dupli, is_split
+        order = torch.argsort(torch.where(cost > 0, grads, torch.full_like(grads, -1.0)), descending=True, stable=True)
+        keep = torch.zeros_like(is_dupli)
+        keep[order] = torch.cumsum(cost[order], 0) <= budget
+        return is_dupli & keep, is_split & keep
 
     @torch.no_grad()
     def _prune_gs(self, params, optimizers, state: dict[str, Any], step: int) -> int:

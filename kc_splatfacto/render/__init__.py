@@ -1,6 +1,14 @@
 """Render layer: gsplat-compatible ``rasterization()`` with reference (torch), cpu (compiled) and gsplat backends."""
 
-from .projection import Projection, fully_fused_projection, persp_proj, quat_scale_to_covar, quat_to_rotmat, world_to_cam
+from .projection import (
+    Projection,
+    fully_fused_projection,
+    persp_proj,
+    quat_scale_to_covar,
+    quat_scale_to_covar_half,
+    quat_to_rotmat,
+    world_to_cam,
+)
 from .rasterization import BACKENDS, RENDER_MODES, rasterization, resolve_backend
 from .rasterize_torch import rasterize_to_pixels_torch
 from .sh import num_sh_bases, sh_bases, sh_to_rgb, spherical_harmonics
@@ -17,6 +25,7 @@ __all__ = [
     "num_sh_bases",
     "persp_proj",
     "quat_scale_to_covar",
+    "quat_scale_to_covar_half",
     "quat_to_rotmat",
     "rasterization",
     "rasterize_to_pixels_torch",

@@ -4,8 +4,9 @@ Layout shared by the kernels (all arrays C-contiguous numpy):
 
 - ``packed [M, PACK_HEAD + D] float32``: one row per intersection ``m`` (tile-sorted order), the Gaussian
   ``flatten_ids[m]`` gathered once so that a tile streams through contiguous memory:
-  ``x, y, conic_a, conic_b, conic_c, opacity, extent_x, extent_y, color[0..D)``. ``extent_*`` is a conservative
-  half-size (px) of the ellipse where ``alpha >= alpha_threshold``: a tile only visits pixels inside it.
+  ``x, y, conic_a, conic_b, conic_c, opacity, extent_x, extent_y, sigma_cut, color[0..D)``. ``extent_*`` is a
+  conservative half-size (px) of the ellipse where ``alpha >= alpha_threshold``: a tile only visits pixels inside
+  it; a pixel with ``sigma > sigma_cut`` has ``alpha < alpha_threshold`` and is skipped before the exp.
 - ``tile_offsets [C * tile_h * tile_w] int32``: first intersection of each tile (gsplat's ``isect_offsets``
   flattened); the last tile ends at ``M``.
 - Per-pixel forward state ``T_final [C, H, W] float32`` (transmittance after the last contributor) and
@@ -26,8 +27,11 @@ import math
 import numpy as np
 from numba import njit, prange
 
-# packed row: x, y, conic a, b, c, opacity, extent x, extent y, then D colour channels
-PACK_HEAD = 8
+# packed row: x, y, conic a, b, c, opacity, extent x, extent y, sigma cut, then D colour channels
+PACK_HEAD = 9
+# Pre-test margin on sigma: beyond log(opacity / threshold) + margin, alpha < threshold whatever expf rounds to,
+# so such a pixel is skipped without calling exp (exactly as the full test would skip it).
+SIGMA_CUT_MARGIN = 1e-3
 # gradient row: v_x, v_y, v_conic a, b, c, v_opacity, |v_x|, |v_y| summed per pixel (absgrad), then D v_colors
 GRAD_HEAD = 8
 
@@ -66,33 +70,71 @@ def pack_isects(means2d, conics, opacities, colors, flatten_ids, alpha_threshold
             # opacity * exp(-sigma) <= opacity < threshold for every sigma >= 0: no pixel passes
             ex = -1.0
             ey = -1.0
-        elif a64 > 0.0 and c64 > 0.0 and det > 0.0 and math.isfinite(det):
-            sigma_max = math.log(np.float64(o) / np.float64(alpha_threshold)) + 1e-3
-            ex = math.sqrt(2.0 * sigma_max * c64 / det) * 1.001 + 1e-2
-            ey = math.sqrt(2.0 * sigma_max * a64 / det) * 1.001 + 1e-2
+            sigma_cut = -1.0
         else:
-            ex = np.inf
-            ey = np.inf
+            sigma_cut = math.log(np.float64(o) / np.float64(alpha_threshold)) + SIGMA_CUT_MARGIN
+            if a64 > 0.0 and c64 > 0.0 and det > 0.0 and math.isfinite(det):
+                ex = math.sqrt(2.0 * sigma_cut * c64 / det) * 1.001 + 1e-2
+                ey = math.sqrt(2.0 * sigma_cut * a64 / det) * 1.001 + 1e-2
+            else:
+                ex = np.inf
+                ey = np.inf
         packed[m, 6] = ex
         packed[m, 7] = ey
+        packed[m, 8] = sigma_cut
         for k in range(n_channels):
             packed[m, PACK_HEAD + k] = colors[g, k]
 
 
 @njit(inline="always")
 def _pixel_range(center, extent, pixel_offset, lo, hi):
-    """Pixels ``p`` in ``[lo, hi)`` whose centre ``p + pixel_offset`` is within ``extent`` of ``center``: (first, end)."""
+    """Pixels ``p`` in ``[lo, hi)`` whose centre ``p + pixel_offset`` is within ``extent`` of ``center``: (first, end).
+
+    Clamped in float64 before the integer conversion, so huge or infinite extents (elongated or degenerate
+    Gaussians) give the whole range instead of an overflowed integer.
+    """
     if not (extent >= 0.0):
         return lo, lo
-    if extent == np.inf or not math.isfinite(center):
+    if not math.isfinite(center):
         return lo, hi
-    first = math.ceil(np.float64(center) - np.float64(extent) - np.float64(pixel_offset))
-    last = math.floor(np.float64(center) + np.float64(extent) - np.float64(pixel_offset))
-    if first < lo:
-        first = lo
-    if last > hi - 1:
-        last = hi - 1
-    if last < first:
+    first = max(np.ceil(np.float64(center) - np.float64(extent) - np.float64(pixel_offset)), np.float64(lo))
+    last = min(np.floor(np.float64(center) + np.float64(extent) - np.float64(pixel_offset)), np.float64(hi - 1))
+    if not (last >= first):
+        return lo, lo
+    return int(first), int(last) + 1
+
+
+@njit(inline="always")
+def _ellipse_rows(ca, cb, cc, sigma_cut):
+    """Per-Gaussian coefficients of the row spans of the ellipse ``sigma <= sigma_cut`` (float64).
+
+    With ``dx = x - px`` the row at offset ``dy`` holds ``dx`` in ``-(b/a) dy +- sqrt(2 cut / a - det / a^2 dy^2)``.
+    Returns (bounded, 2 cut / a, det / a^2, b / a); ``bounded`` is False for a conic that is not positive definite.
+    """
+    a = np.float64(ca)
+    b = np.float64(cb)
+    det = a * np.float64(cc) - b * b
+    if a > 0.0 and det > 0.0 and math.isfinite(det) and sigma_cut >= 0.0:
+        return True, 2.0 * np.float64(sigma_cut) / a, det / (a * a), b / a
+    return False, 0.0, 0.0, 0.0
+
+
+@njit(inline="always")
+def _row_range(bounded, k_cut, k_det, k_b, gx, dy, pixel_offset, lo, hi):
+    """Pixels of ``[lo, hi)`` in one row whose centre may have ``sigma <= sigma_cut`` (conservative): (first, end)."""
+    if not bounded:
+        return lo, hi
+    d = np.float64(dy)
+    half_sq = k_cut - k_det * d * d
+    if not (half_sq >= 0.0):
+        return lo, lo
+    half_w = math.sqrt(half_sq) * 1.001 + 1e-2
+    center = np.float64(gx) + k_b * d - np.float64(pixel_offset)
+    if not (math.isfinite(half_w) and math.isfinite(center)):
+        return lo, hi
+    first = max(np.ceil(center - half_w), np.float64(lo))
+    last = min(np.floor(center + half_w), np.float64(hi - 1))
+    if not (last >= first):
         return lo, lo
     return int(first), int(last) + 1
 
@@ -115,8 +157,10 @@ def rasterize_fwd(
     render_colors,
     T_final,
     last_ids,
+    n_contrib,
 ):
-    """Front-to-back compositing, one tile per task (fills render_colors [C,H,W,D], T_final, last_ids).
+    """Front-to-back compositing, one tile per task (fills render_colors [C,H,W,D], T_final, last_ids and
+    n_contrib [C,H,W] int32, the number of Gaussians composited into each pixel).
 
     backgrounds [C,D] float32 (zeros when the caller has none: ``T * 0`` adds nothing).
     """
@@ -143,6 +187,7 @@ def rasterize_fwd(
         T = np.ones(n_pix, dtype=np.float32)
         acc = np.zeros((n_pix, n_channels), dtype=np.float64)
         last = np.full(n_pix, -1, dtype=np.int32)
+        count = np.zeros(n_pix, dtype=np.int32)
         done = np.zeros(n_pix, dtype=np.bool_)
         n_done = 0
         for m in range(start, end):
@@ -154,17 +199,22 @@ def rasterize_fwd(
             cb = packed[m, 3]
             cc = packed[m, 4]
             op = packed[m, 5]
+            sigma_cut = packed[m, 8]
             j_first, j_end = _pixel_range(gx, packed[m, 6], pixel_offset, x0, x1)
             i_first, i_end = _pixel_range(gy, packed[m, 7], pixel_offset, y0, y1)
+            bounded, k_cut, k_det, k_b = _ellipse_rows(ca, cb, cc, sigma_cut)
             for i in range(i_first, i_end):
                 dy = gy - (_F32(i) + pixel_offset)
+                row_first, row_end = _row_range(bounded, k_cut, k_det, k_b, gx, dy, pixel_offset, j_first, j_end)
                 row = (i - y0) * span_x - x0
-                for j in range(j_first, j_end):
+                for j in range(row_first, row_end):
                     p = row + j
                     if done[p]:
                         continue
                     dx = gx - (_F32(j) + pixel_offset)
                     sigma = half * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                    if sigma > sigma_cut:
+                        continue
                     alpha = min(max_alpha, op * math.exp(-sigma))
                     if sigma < 0 or alpha < alpha_threshold:
                         continue
@@ -178,6 +228,7 @@ def rasterize_fwd(
                     for k in range(n_channels):
                         acc[p, k] += packed[m, PACK_HEAD + k] * vis
                     last[p] = m
+                    count[p] += 1
                     T[p] = next_T
         for i in range(y0, y1):
             for j in range(x0, x1):
@@ -185,6 +236,7 @@ def rasterize_fwd(
                 t = T[p]
                 T_final[cam, i, j] = t
                 last_ids[cam, i, j] = last[p]
+                n_contrib[cam, i, j] = count[p]
                 for k in range(n_channels):
                     render_colors[cam, i, j, k] = acc[p, k] + t * backgrounds[cam, k]
 
@@ -270,8 +322,10 @@ def rasterize_bwd(
             cb = packed[m, 3]
             cc = packed[m, 4]
             op = packed[m, 5]
+            sigma_cut = packed[m, 8]
             j_first, j_end = _pixel_range(gx, packed[m, 6], pixel_offset, x0, x1)
             i_first, i_end = _pixel_range(gy, packed[m, 7], pixel_offset, y0, y1)
+            bounded, k_cut, k_det, k_b = _ellipse_rows(ca, cb, cc, sigma_cut)
             for k in range(n_channels):
                 v_rgb[k] = 0.0
             v_ca = 0.0
@@ -284,13 +338,16 @@ def rasterize_bwd(
             v_op = 0.0
             for i in range(i_first, i_end):
                 dy = gy - (_F32(i) + pixel_offset)
+                row_first, row_end = _row_range(bounded, k_cut, k_det, k_b, gx, dy, pixel_offset, j_first, j_end)
                 row = (i - y0) * span_x - x0
-                for j in range(j_first, j_end):
+                for j in range(row_first, row_end):
                     p = row + j
                     if m > last[p]:
                         continue
                     dx = gx - (_F32(j) + pixel_offset)
                     sigma = half * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                    if sigma > sigma_cut:
+                        continue
                     vis = math.exp(-sigma)
                     alpha = min(max_alpha, op * vis)
                     if sigma < 0 or alpha < alpha_threshold:
@@ -340,3 +397,317 @@ def reduce_isect_grads(isect_grads, flatten_ids, n_gaussians, gaussian_grads):
         g = flatten_ids[m]
         for k in range(n_cols):
             gaussian_grads[g, k] += isect_grads[m, k]
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# Vectorized kernels for 16 px tiles: every row of a tile is processed as 16 lanes without branches (LLVM turns the
+# lane loops into AVX2 code), per-pixel state lives in [LANES, LANES] float32 arrays, the Gaussian's exp is the
+# branch-free ``exp_neg`` below. Decisions (skip, stop) are the same per-pixel tests as the scalar kernels above.
+# ------------------------------------------------------------------------------------------------------------------
+
+LANES = 16
+_LOG2E = np.float32(1.4426950408889634)
+# ln 2 split in a high part exact in float32 and a low remainder (Cody-Waite range reduction)
+_LN2_HI = np.float32(0.693359375)
+_LN2_LO = np.float32(-2.12194440e-4)
+# exp(-s) is only needed for s <= sigma_cut = log(opacity / alpha_threshold) + margin < 6; larger s is masked out
+_EXP_NEG_MAX = np.float32(12.0)
+
+
+@njit(inline="always")
+def exp_neg(s):
+    """``exp(-s)`` in float32 arithmetic only (no libm call, no branch: vectorizable), ``s`` clamped to [0, 12].
+
+    ``s = n ln2 + r`` with integer ``n`` and ``|r| <= ln2 / 2``; ``exp(-r)`` by its degree-7 Taylor polynomial
+    (truncation < 6e-9), ``2^-n`` by exact power-of-two factors. Relative error <= 1.1e-7 (~2 float32 ulp) on
+    [0, 12], like gsplat's ``__expf`` an approximation of a few ulp.
+    """
+    s = min(max(s, _F32(0.0)), _EXP_NEG_MAX)
+    nf = np.floor(s * _LOG2E + _F32(0.5))
+    r = (nf * _LN2_HI - s) + nf * _LN2_LO
+    p = _F32(1.0 / 5040.0)
+    p = p * r + _F32(1.0 / 720.0)
+    p = p * r + _F32(1.0 / 120.0)
+    p = p * r + _F32(1.0 / 24.0)
+    p = p * r + _F32(1.0 / 6.0)
+    p = p * r + _F32(0.5)
+    p = p * r + _F32(1.0)
+    p = p * r + _F32(1.0)
+    # 2^-n for n in [0, 17] from its binary digits, every factor exact
+    c = nf >= _F32(16.0)
+    p = p * (_F32(2.0**-16) if c else _F32(1.0))
+    nf = nf - (_F32(16.0) if c else _F32(0.0))
+    c = nf >= _F32(8.0)
+    p = p * (_F32(2.0**-8) if c else _F32(1.0))
+    nf = nf - (_F32(8.0) if c else _F32(0.0))
+    c = nf >= _F32(4.0)
+    p = p * (_F32(2.0**-4) if c else _F32(1.0))
+    nf = nf - (_F32(4.0) if c else _F32(0.0))
+    c = nf >= _F32(2.0)
+    p = p * (_F32(0.25) if c else _F32(1.0))
+    nf = nf - (_F32(2.0) if c else _F32(0.0))
+    c = nf >= _F32(1.0)
+    return p * (_F32(0.5) if c else _F32(1.0))
+
+
+@njit(cache=True, fastmath=False)
+def exp_neg_array(s, out):
+    """``out[i] = exp_neg(s[i])`` (for tests)."""
+    for i in range(s.shape[0]):
+        out[i] = exp_neg(s[i])
+
+
+@njit(inline="always")
+def _tile_geometry(tile, tiles_per_image, tile_width, image_width, image_height):
+    cam = tile // tiles_per_image
+    tile_in_image = tile - cam * tiles_per_image
+    tile_y = tile_in_image // tile_width
+    tile_x = tile_in_image - tile_y * tile_width
+    x0 = tile_x * LANES
+    y0 = tile_y * LANES
+    return cam, x0, y0, min(x0 + LANES, image_width), min(y0 + LANES, image_height)
+
+
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def rasterize_fwd_lanes(
+    packed,
+    tile_offsets,
+    backgrounds,
+    n_cameras,
+    image_height,
+    image_width,
+    tile_height,
+    tile_width,
+    pixel_offset,
+    max_alpha,
+    alpha_threshold,
+    transmittance_threshold,
+    render_colors,
+    T_final,
+    last_ids,
+    n_contrib,
+):
+    """``rasterize_fwd`` for 16 px tiles with 16-lane rows (same outputs)."""
+    n_isects = packed.shape[0]
+    n_channels = packed.shape[1] - PACK_HEAD
+    tiles_per_image = tile_height * tile_width
+    n_tiles = n_cameras * tiles_per_image
+    half = _F32(0.5)
+    one = _F32(1.0)
+    zero = _F32(0.0)
+    for tile in prange(n_tiles):
+        cam, x0, y0, x1, y1 = _tile_geometry(tile, tiles_per_image, tile_width, image_width, image_height)
+        start = tile_offsets[tile]
+        end = tile_offsets[tile + 1] if tile + 1 < n_tiles else n_isects
+        T = np.ones((LANES, LANES), dtype=np.float32)
+        acc = np.zeros((n_channels, LANES, LANES), dtype=np.float32)
+        last = np.full((LANES, LANES), -1, dtype=np.int32)
+        count = np.zeros((LANES, LANES), dtype=np.float32)
+        # 1 while the pixel composites; 0 once done (and for lanes outside the image)
+        live = np.zeros((LANES, LANES), dtype=np.float32)
+        live[: y1 - y0, : x1 - x0] = one
+        pixel_x = np.empty(LANES, dtype=np.float32)
+        for jj in range(LANES):
+            pixel_x[jj] = _F32(x0 + jj) + pixel_offset
+        vis = np.empty(LANES, dtype=np.float32)
+        for m in range(start, end):
+            if (m - start) % LANES == LANES - 1:
+                n_live = 0
+                for r in range(LANES):
+                    for jj in range(LANES):
+                        n_live += 1 if live[r, jj] > zero else 0
+                if n_live == 0:
+                    break
+            gx = packed[m, 0]
+            gy = packed[m, 1]
+            ca = packed[m, 2]
+            cb = packed[m, 3]
+            cc = packed[m, 4]
+            op = packed[m, 5]
+            sigma_cut = packed[m, 8]
+            j_first, j_end = _pixel_range(gx, packed[m, 6], pixel_offset, x0, x1)
+            if j_end <= j_first:
+                continue
+            i_first, i_end = _pixel_range(gy, packed[m, 7], pixel_offset, y0, y1)
+            bounded, k_cut, k_det, k_b = _ellipse_rows(ca, cb, cc, sigma_cut)
+            mi = np.int32(m)
+            for i in range(i_first, i_end):
+                dy = gy - (_F32(i) + pixel_offset)
+                row_first, row_end = _row_range(bounded, k_cut, k_det, k_b, gx, dy, pixel_offset, j_first, j_end)
+                if row_end <= row_first:
+                    continue
+                r = i - y0
+                c_dy_dy = cc * dy * dy
+                for jj in range(LANES):
+                    dx = gx - pixel_x[jj]
+                    sigma = half * (ca * dx * dx + c_dy_dy) + cb * dx * dy
+                    alpha = min(max_alpha, op * exp_neg(sigma))
+                    t = T[r, jj]
+                    next_t = t * (one - alpha)
+                    ok = (sigma >= zero) & (sigma <= sigma_cut) & (alpha >= alpha_threshold) & (live[r, jj] > zero)
+                    use = ok & (next_t > transmittance_threshold)
+                    stop = ok & (next_t <= transmittance_threshold)
+                    vis[jj] = alpha * t if use else zero
+                    T[r, jj] = next_t if use else t
+                    last[r, jj] = mi if use else last[r, jj]
+                    count[r, jj] += one if use else zero
+                    live[r, jj] = zero if stop else live[r, jj]
+                for k in range(n_channels):
+                    ck = packed[m, PACK_HEAD + k]
+                    for jj in range(LANES):
+                        acc[k, r, jj] += ck * vis[jj]
+        for i in range(y0, y1):
+            for j in range(x0, x1):
+                r = i - y0
+                jj = j - x0
+                t = T[r, jj]
+                T_final[cam, i, j] = t
+                last_ids[cam, i, j] = last[r, jj]
+                n_contrib[cam, i, j] = np.int32(count[r, jj])
+                for k in range(n_channels):
+                    render_colors[cam, i, j, k] = acc[k, r, jj] + t * backgrounds[cam, k]
+
+
+# error_model="numpy": no ZeroDivisionError branch in 1 / (1 - alpha) (alpha <= ALPHA_CLAMP < 1), which would
+# keep the lane loop from vectorizing
+@njit(parallel=True, cache=True, fastmath=False, error_model="numpy")
+def rasterize_bwd_lanes(
+    packed,
+    tile_offsets,
+    backgrounds,
+    T_final,
+    last_ids,
+    v_render_colors,
+    v_render_alphas,
+    n_cameras,
+    image_height,
+    image_width,
+    tile_height,
+    tile_width,
+    pixel_offset,
+    max_alpha,
+    alpha_threshold,
+    isect_grads,
+):
+    """``rasterize_bwd`` for 16 px tiles with 16-lane rows (same outputs).
+
+    Per Gaussian, each gradient is summed per lane over the rows (element-wise adds: vectorizable without
+    reassociation), then over the 16 lanes in float64 in a fixed order. Transmittance is recovered by division in
+    float32, as gsplat's backward does.
+    """
+    n_isects = packed.shape[0]
+    n_channels = packed.shape[1] - PACK_HEAD
+    tiles_per_image = tile_height * tile_width
+    n_tiles = n_cameras * tiles_per_image
+    half = _F32(0.5)
+    one = _F32(1.0)
+    zero = _F32(0.0)
+    for tile in prange(n_tiles):
+        cam, x0, y0, x1, y1 = _tile_geometry(tile, tiles_per_image, tile_width, image_width, image_height)
+        start = tile_offsets[tile]
+        end = tile_offsets[tile + 1] if tile + 1 < n_tiles else n_isects
+        if end <= start:
+            continue
+        T = np.ones((LANES, LANES), dtype=np.float32)
+        last = np.full((LANES, LANES), -1, dtype=np.int32)
+        v_c = np.zeros((n_channels, LANES, LANES), dtype=np.float32)
+        alpha_term = np.zeros((LANES, LANES), dtype=np.float32)
+        buffer = np.zeros((n_channels, LANES, LANES), dtype=np.float32)
+        tile_last = -1
+        for i in range(y0, y1):
+            for j in range(x0, x1):
+                r = i - y0
+                jj = j - x0
+                t = T_final[cam, i, j]
+                T[r, jj] = t
+                lp = last_ids[cam, i, j]
+                last[r, jj] = lp
+                if lp > tile_last:
+                    tile_last = lp
+                bg_dot = zero
+                for k in range(n_channels):
+                    v = v_render_colors[cam, i, j, k]
+                    v_c[k, r, jj] = v
+                    bg_dot += backgrounds[cam, k] * v
+                # d(out)/d(alpha) terms that do not depend on the Gaussian: T_final * (v_alpha_out - <bg, v_color>)
+                alpha_term[r, jj] = t * (v_render_alphas[cam, i, j] - bg_dot)
+        pixel_x = np.empty(LANES, dtype=np.float32)
+        for jj in range(LANES):
+            pixel_x[jj] = _F32(x0 + jj) + pixel_offset
+        # one row's per-lane values (vis, T, 1 / (1 - alpha), valid, d out / d alpha), in one allocation
+        scratch = np.empty((5, LANES), dtype=np.float32)
+        # per-lane sums over the rows of one Gaussian: v_x, v_y, v_a, v_b, v_c, v_opacity, |v_x|, |v_y|, v_rgb
+        sums = np.empty((GRAD_HEAD + n_channels, LANES), dtype=np.float32)
+        pair_sums = np.empty(LANES // 2, dtype=np.float64)
+        for m in range(min(tile_last, end - 1), start - 1, -1):
+            gx = packed[m, 0]
+            gy = packed[m, 1]
+            ca = packed[m, 2]
+            cb = packed[m, 3]
+            cc = packed[m, 4]
+            op = packed[m, 5]
+            sigma_cut = packed[m, 8]
+            j_first, j_end = _pixel_range(gx, packed[m, 6], pixel_offset, x0, x1)
+            if j_end <= j_first:
+                continue
+            i_first, i_end = _pixel_range(gy, packed[m, 7], pixel_offset, y0, y1)
+            bounded, k_cut, k_det, k_b = _ellipse_rows(ca, cb, cc, sigma_cut)
+            sums[:, :] = zero
+            mi = np.int32(m)
+            for i in range(i_first, i_end):
+                dy = gy - (_F32(i) + pixel_offset)
+                row_first, row_end = _row_range(bounded, k_cut, k_det, k_b, gx, dy, pixel_offset, j_first, j_end)
+                if row_end <= row_first:
+                    continue
+                r = i - y0
+                c_dy_dy = cc * dy * dy
+                for jj in range(LANES):
+                    dx = gx - pixel_x[jj]
+                    sigma = half * (ca * dx * dx + c_dy_dy) + cb * dx * dy
+                    vis = exp_neg(sigma)
+                    alpha = min(max_alpha, op * vis)
+                    valid = (mi <= last[r, jj]) & (sigma >= zero) & (sigma <= sigma_cut) & (alpha >= alpha_threshold)
+                    ra = one / (one - alpha)
+                    t = T[r, jj] * ra
+                    T[r, jj] = t if valid else T[r, jj]
+                    scratch[0, jj] = vis
+                    scratch[1, jj] = t
+                    scratch[2, jj] = ra
+                    scratch[3, jj] = one if valid else zero
+                    scratch[4, jj] = alpha_term[r, jj] * ra
+                for k in range(n_channels):
+                    ck = packed[m, PACK_HEAD + k]
+                    for jj in range(LANES):
+                        on = scratch[3, jj] > zero
+                        t = scratch[1, jj]
+                        fac = min(max_alpha, op * scratch[0, jj]) * t
+                        vk = v_c[k, r, jj]
+                        sums[GRAD_HEAD + k, jj] += fac * vk if on else zero
+                        scratch[4, jj] += (ck * t - buffer[k, r, jj] * scratch[2, jj]) * vk
+                        buffer[k, r, jj] += ck * fac if on else zero
+                for jj in range(LANES):
+                    dx = gx - pixel_x[jj]
+                    vis = scratch[0, jj]
+                    v_alpha = scratch[4, jj]
+                    # gsplat leaves opacity and geometry gradients at 0 where the alpha clamp is active
+                    unclamped = (scratch[3, jj] > zero) & (op * vis <= max_alpha)
+                    v_sigma = -op * vis * v_alpha if unclamped else zero
+                    g_x = v_sigma * (ca * dx + cb * dy)
+                    g_y = v_sigma * (cb * dx + cc * dy)
+                    sums[0, jj] += g_x
+                    sums[1, jj] += g_y
+                    sums[2, jj] += half * v_sigma * dx * dx
+                    sums[3, jj] += v_sigma * dx * dy
+                    sums[4, jj] += half * v_sigma * dy * dy
+                    sums[5, jj] += vis * v_alpha if unclamped else zero
+                    sums[6, jj] += abs(g_x)
+                    sums[7, jj] += abs(g_y)
+            # pairwise over the lanes in float64, a fixed tree: element-wise (vectorizable) and deterministic
+            for q in range(GRAD_HEAD + n_channels):
+                for jj in range(LANES // 2):
+                    pair_sums[jj] = np.float64(sums[q, jj]) + np.float64(sums[q, jj + LANES // 2])
+                for jj in range(LANES // 4):
+                    pair_sums[jj] = pair_sums[jj] + pair_sums[jj + LANES // 4]
+                isect_grads[m, q] = (pair_sums[0] + pair_sums[2]) + (pair_sums[1] + pair_sums[3])

@@ -37,55 +37,64 @@ def quat_to_rotmat(quats: Tensor) -> Tensor:
     return rotmat.reshape(quats.shape[:-1] + (3, 3))
 
 
-def quat_scale_to_covar(quats: Tensor, scales: Tensor) -> Tensor:
-    """World-space covariances ``R S S^T R^T``.
+def quat_scale_to_covar_half(quats: Tensor, scales: Tensor) -> Tensor:
+    """Covariance factors ``M = R S``, so that the world covariance is ``M M^T``.
+
+    Carrying the factor instead of the covariance keeps every projected covariance positive semi-definite by
+    construction and turns the per-Gaussian 3x3 products into one camera-rotation GEMM plus elementwise ops.
 
     Args:
         quats: [N, 4] wxyz (normalized inside).
         scales: [N, 3] linear standard deviations along the local axes.
 
     Returns:
-        [N, 3, 3] symmetric covariances.
+        [N, 3, 3] factors (column k = local axis k scaled by scale k).
     """
-    rs = quat_to_rotmat(quats) * scales[..., None, :]  # [N, 3, 3], columns scaled
-    return rs @ rs.transpose(-1, -2)
+    return quat_to_rotmat(quats) * scales[..., None, :]
 
 
-def world_to_cam(means: Tensor, covars: Tensor, viewmats: Tensor) -> tuple[Tensor, Tensor]:
-    """Means and covariances in camera space.
+def quat_scale_to_covar(quats: Tensor, scales: Tensor) -> Tensor:
+    """World-space covariances ``R S S^T R^T``. [N, 4], [N, 3] -> [N, 3, 3]."""
+    half = quat_scale_to_covar_half(quats, scales)
+    return half @ half.transpose(-1, -2)
+
+
+def world_to_cam(means: Tensor, covar_halves: Tensor, viewmats: Tensor) -> tuple[Tensor, Tensor]:
+    """Means and covariance factors in camera space: ``mu_c = W mu + t``, ``M_c = W M`` (``Sigma_c = M_c M_c^T``).
 
     Args:
         means: [N, 3] world positions.
-        covars: [N, 3, 3] world covariances.
+        covar_halves: [N, 3, 3] world covariance factors from :func:`quat_scale_to_covar_half`.
         viewmats: [C, 4, 4] world-to-camera (OpenCV axes: x right, y down, z forward).
 
     Returns:
-        means_c [C, N, 3] and covars_c [C, N, 3, 3].
+        means_c [C, N, 3] and covar_halves_c [C, N, 3, 3].
     """
     rot = viewmats[:, :3, :3]  # [C, 3, 3]
     trans = viewmats[:, :3, 3]  # [C, 3]
     means_c = torch.einsum("cij,nj->cni", rot, means) + trans[:, None, :]
-    covars_c = torch.einsum("cij,njk,clk->cnil", rot, covars, rot)
-    return means_c, covars_c
+    halves_c = torch.einsum("cij,njk->cnik", rot, covar_halves)
+    return means_c, halves_c
 
 
 def persp_proj(
-    means_c: Tensor, covars_c: Tensor, Ks: Tensor, width: int, height: int
+    means_c: Tensor, covar_halves_c: Tensor, Ks: Tensor, width: int, height: int
 ) -> tuple[Tensor, Tensor]:
-    """Pinhole projection of means and the EWA (first-order) projection of covariances.
+    """Pinhole projection of means and the EWA (first-order) projection of covariances, ``J Sigma_c J^T``.
 
     The Jacobian is evaluated at x/z, y/z clamped to the image's extent plus ``FOV_CLAMP_MARGIN * tan(fov/2)`` on each
     side (gsplat's ``persp_proj``), so Gaussians far outside the frustum keep a bounded footprint. The mean itself is
-    not clamped.
+    not clamped. With ``Sigma_c = M_c M_c^T``, ``J Sigma_c J^T = (J M_c)(J M_c)^T`` and ``J`` has two non-zero entries
+    per row, so the rows of ``J M_c`` are elementwise combinations of the rows of ``M_c``.
 
     Args:
         means_c: [C, N, 3] camera-space means with z > 0 (callers replace invalid depths first).
-        covars_c: [C, N, 3, 3] camera-space covariances.
+        covar_halves_c: [C, N, 3, 3] camera-space covariance factors.
         Ks: [C, 3, 3] intrinsics.
         width, height: image size in pixels.
 
     Returns:
-        means2d [C, N, 2] in pixels and covars2d [C, N, 2, 2] (before the eps2d dilation).
+        means2d [C, N, 2] in pixels and covars2d [C, N, 3] as (xx, xy, yy), before the eps2d dilation.
     """
     x, y, z = torch.unbind(means_c, dim=-1)  # [C, N]
     fx = Ks[:, 0, 0, None]
@@ -101,11 +110,11 @@ def persp_proj(
     rz = 1.0 / z
     tx = z * torch.minimum(lim_x_pos, torch.maximum(-lim_x_neg, x * rz))
     ty = z * torch.minimum(lim_y_pos, torch.maximum(-lim_y_neg, y * rz))
-    zeros = torch.zeros_like(z)
-    jac = torch.stack(
-        [fx * rz, zeros, -fx * tx * rz * rz, zeros, fy * rz, -fy * ty * rz * rz], dim=-1
-    ).reshape(z.shape + (2, 3))
-    covars2d = jac @ covars_c @ jac.transpose(-1, -2)
+    # J = [[fx/z, 0, -fx tx/z^2], [0, fy/z, -fy ty/z^2]]; rows of J M_c:
+    row_z = covar_halves_c[..., 2, :]  # [C, N, 3]
+    jm_x = (fx * rz)[..., None] * covar_halves_c[..., 0, :] - (fx * tx * rz * rz)[..., None] * row_z
+    jm_y = (fy * rz)[..., None] * covar_halves_c[..., 1, :] - (fy * ty * rz * rz)[..., None] * row_z
+    covars2d = torch.stack([(jm_x * jm_x).sum(-1), (jm_x * jm_y).sum(-1), (jm_y * jm_y).sum(-1)], dim=-1)
     means2d = torch.stack([fx * x * rz + cx, fy * y * rz + cy], dim=-1)
     return means2d, covars2d
 
@@ -160,16 +169,15 @@ def fully_fused_projection(
     Returns:
         :class:`Projection`.
     """
-    covars = quat_scale_to_covar(quats, scales)
-    means_c, covars_c = world_to_cam(means, covars, viewmats)
+    means_c, halves_c = world_to_cam(means, quat_scale_to_covar_half(quats, scales), viewmats)
     depths_raw = means_c[..., 2]
     # z > 0 additionally guards the division when a caller passes near_plane <= 0.
     valid = (depths_raw >= near_plane) & (depths_raw <= far_plane) & (depths_raw > 0)
     # Replace invalid depths before dividing: torch.where would otherwise route inf/NaN gradients of the unused branch.
     safe_means_c = torch.where(valid[..., None], means_c, torch.ones_like(means_c))
-    means2d, covars2d = persp_proj(safe_means_c, covars_c, Ks, width, height)
+    means2d, covars2d = persp_proj(safe_means_c, halves_c, Ks, width, height)
 
-    a, b, c = covars2d[..., 0, 0], covars2d[..., 0, 1], covars2d[..., 1, 1]
+    a, b, c = covars2d.unbind(-1)
     det_orig = a * c - b * b
     a = a + eps2d
     c = c + eps2d

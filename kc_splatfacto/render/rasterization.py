@@ -3,7 +3,7 @@
 - ``"torch"``: the reference (:func:`rasterize_to_pixels_torch`), differentiable by autograd; slow.
 - ``"cpu"``: the compiled per-pixel kernels (``rasterize_cpu.rasterize_to_pixels_cpu``), same projection/SH/tiles.
 - ``"gsplat"``: ``gsplat.rasterization`` itself; needs gsplat installed and CUDA tensors (a clear error otherwise).
-- ``"auto"``: gsplat for CUDA tensors when gsplat imports, else cpu.
+- ``"auto"``: gsplat for CUDA tensors (an error when gsplat is missing), cpu for CPU tensors.
 """
 
 from __future__ import annotations
@@ -48,14 +48,21 @@ def resolve_backend(backend: str, device: torch.device) -> str:
     """The concrete backend for ``backend`` and tensors on ``device``; raises on impossible requests.
 
     Raises:
-        ValueError: unknown backend, or "cpu"/"torch" asked with CUDA tensors... see messages.
-        RuntimeError: "gsplat" asked without gsplat or without CUDA tensors (never a silent fallback).
+        ValueError: unknown backend, or "cpu" asked with non-CPU tensors.
+        RuntimeError: "gsplat" asked without gsplat or without CUDA tensors, or "auto" with CUDA tensors and no
+            gsplat (never a silent fallback).
+        ImportError: "cpu" asked while the compiled module cannot be imported.
     """
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if backend == "auto":
-        if device.type == "cuda" and _gsplat_available():
-            return "gsplat"
+        if device.type == "cuda":
+            if _gsplat_available():
+                return "gsplat"
+            raise RuntimeError(
+                "rasterization(backend='auto') got CUDA tensors but gsplat is not installed: install gsplat==1.5.3, "
+                "move the tensors to the CPU (compiled cpu backend), or pass backend='torch' (slow reference)"
+            )
         if _cpu_rasterizer() is not None:
             return "cpu"
         warnings.warn(
@@ -194,12 +201,16 @@ def rasterization(
     if resolved == "gsplat":
         import gsplat
 
-        return gsplat.rasterization(
+        render_colors, render_alphas, meta = gsplat.rasterization(
             means, quats, scales, opacities, colors, viewmats, Ks, width, height,
             near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, radius_clip=radius_clip, sh_degree=sh_degree,
             tile_size=tile_size, backgrounds=backgrounds, render_mode=render_mode, rasterize_mode=rasterize_mode,
             absgrad=absgrad, packed=False,
         )
+        if meta["means2d"].requires_grad:
+            meta["means2d"].retain_grad()
+        meta["backend"] = resolved
+        return render_colors, render_alphas, meta
 
     _check_inputs(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds, render_mode,

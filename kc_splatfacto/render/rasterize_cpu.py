@@ -7,12 +7,15 @@ skip ``sigma < 0`` and ``alpha < ALPHA_THRESHOLD``, stop before the transmittanc
 background blended with the final transmittance; backward in reverse order from each pixel's last contributor.
 
 Parallel over (camera, tile); each intersection's gradient is written by the one tile that owns it and then
-reduced to Gaussians in a fixed order, so results do not depend on the thread count. Compute is float32 like
-gsplat; transmittance and gradient sums of the backward pass are float64.
+reduced to Gaussians in a fixed order, so results do not depend on the thread count. 16 px tiles run the
+vectorized 16-lane kernels (float32 like gsplat, per-intersection gradient totals and the reduction to Gaussians
+in float64); other tile sizes run scalar kernels (float64 transmittance and gradient sums in backward).
+See ``docs/rasterizer.md`` (Fast CPU path and benchmark).
 """
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import torch
 from torch import Tensor
@@ -21,6 +24,10 @@ from . import _cpu_kernels as K
 from .constants import ALPHA_CLAMP, ALPHA_THRESHOLD, PIXEL_CENTER_OFFSET, TRANSMITTANCE_MIN
 
 __all__ = ["rasterize_to_pixels_cpu"]
+
+# Tiles handed to a thread at a time: small chunks balance tiles of very different cost (dense centre, empty sky)
+# dynamically; the results do not depend on the schedule.
+TILES_PER_CHUNK = 4
 
 
 def _np32(x: Tensor) -> np.ndarray:
@@ -83,8 +90,16 @@ class _RasterizeToPixelsCPU(torch.autograd.Function):
         render_colors = np.empty((C, image_height, image_width, D), np.float32)
         T_final = np.empty((C, image_height, image_width), np.float32)
         last_ids = np.empty((C, image_height, image_width), np.int32)
-        K.rasterize_fwd(packed, offsets, bg, C, image_height, image_width, tile_size, tile_h, tile_w,
-                        pixel_offset, max_alpha, alpha_threshold, transmittance_threshold, render_colors, T_final, last_ids)
+        n_contrib = np.empty((C, image_height, image_width), np.int32)
+        with numba.parallel_chunksize(TILES_PER_CHUNK):
+            if tile_size == K.LANES:
+                K.rasterize_fwd_lanes(packed, offsets, bg, C, image_height, image_width, tile_h, tile_w, pixel_offset,
+                                      max_alpha, alpha_threshold, transmittance_threshold, render_colors, T_final,
+                                      last_ids, n_contrib)
+            else:
+                K.rasterize_fwd(packed, offsets, bg, C, image_height, image_width, tile_size, tile_h, tile_w,
+                                pixel_offset, max_alpha, alpha_threshold, transmittance_threshold, render_colors,
+                                T_final, last_ids, n_contrib)
 
         ctx.geometry = (C, N, D, image_width, image_height, tile_size, tile_h, tile_w)
         ctx.arrays = (packed, offsets, ids, bg, T_final, last_ids)
@@ -92,6 +107,8 @@ class _RasterizeToPixelsCPU(torch.autograd.Function):
         ctx.absgrad = absgrad
         # gsplat sets ``.absgrad`` on this very object (meta["means2d"]), so keep the Python reference
         ctx.means2d = means2d
+        # composited (pixel, Gaussian) pairs of the last forward pass, for benchmarks
+        rasterize_to_pixels_cpu.last_contributing_pairs = int(n_contrib.sum(dtype=np.int64))
         dtype = means2d.dtype
         out_colors = torch.from_numpy(render_colors).to(dtype)
         out_alphas = torch.from_numpy(1.0 - T_final).unsqueeze(-1).to(dtype)
@@ -108,9 +125,15 @@ class _RasterizeToPixelsCPU(torch.autograd.Function):
                         else _np32(v_render_alphas).reshape(C, image_height, image_width))
 
         isect_grads = np.zeros((ids.shape[0], K.GRAD_HEAD + D), np.float32)
-        K.rasterize_bwd(packed, offsets, bg, T_final, last_ids, v_colors_out, v_alphas_out, C, image_height,
-                        image_width, tile_size, tile_h, tile_w, pixel_offset, max_alpha, alpha_threshold,
-                        isect_grads)
+        with numba.parallel_chunksize(TILES_PER_CHUNK):
+            if tile_size == K.LANES:
+                K.rasterize_bwd_lanes(packed, offsets, bg, T_final, last_ids, v_colors_out, v_alphas_out, C,
+                                      image_height, image_width, tile_h, tile_w, pixel_offset, max_alpha,
+                                      alpha_threshold, isect_grads)
+            else:
+                K.rasterize_bwd(packed, offsets, bg, T_final, last_ids, v_colors_out, v_alphas_out, C, image_height,
+                                image_width, tile_size, tile_h, tile_w, pixel_offset, max_alpha, alpha_threshold,
+                                isect_grads)
         grads = np.zeros((C * N, K.GRAD_HEAD + D), np.float64)
         K.reduce_isect_grads(isect_grads, ids, C * N, grads)
 

@@ -21,6 +21,7 @@ from typing import Optional
 
 import torch
 from torch import Tensor
+from torch.utils.checkpoint import checkpoint
 
 from .constants import ALPHA_CLAMP, ALPHA_THRESHOLD, PIXEL_CENTER_OFFSET, TRANSMITTANCE_MIN
 
@@ -128,9 +129,13 @@ def rasterize_to_pixels_torch(
                         xy = xy.unsqueeze(0).expand(pixels.shape[0], -1, -1)
                         if xy.requires_grad:
                             xy.register_hook(lambda g, ids=ids: _capture_abs(g, abs_store, ids))
-                    tile_color, tile_trans = composite_pixels(
-                        pixels, xy, conics_flat[ids], colors_flat[ids], opacities_flat[ids]
-                    )
+                    tile_inputs = (pixels, xy, conics_flat[ids], colors_flat[ids], opacities_flat[ids])
+                    if torch.is_grad_enabled() and any(t.requires_grad for t in tile_inputs):
+                        # Recompute the tile in backward instead of keeping its [pixels x Gaussians] intermediates:
+                        # the graph of a whole image would otherwise hold gigabytes (same ops, same gradients).
+                        tile_color, tile_trans = checkpoint(composite_pixels, *tile_inputs, use_reentrant=False)
+                    else:
+                        tile_color, tile_trans = composite_pixels(*tile_inputs)
                 if background is not None:
                     tile_color = tile_color + tile_trans[:, None] * background
                 tiles_colors.append(tile_color)

@@ -3,7 +3,8 @@
 Each visible (camera, Gaussian) pair is listed once per tile its per-axis radius box touches. The int64 key
 ``camera << (32 + tile_n_bits) | tile << 32 | float32 bits of depth`` sorts intersections by camera, then tile, then
 depth front to back (positive float32 bit patterns order like the floats; culling keeps depths >= near_plane > 0).
-The sort is stable, so equal depths keep the Gaussian order, as gsplat's CUB radix sort does.
+The sort is stable, so equal depths keep the Gaussian order, as gsplat's CUB radix sort does. CPU tensors take an
+equivalent O(M) route (sort the pairs by depth once, then bucket by tile in numba); other devices sort the keys.
 """
 
 from __future__ import annotations
@@ -77,7 +78,6 @@ def isect_tiles(
         :class:`TileIntersections`.
     """
     n_cameras, n_gauss = depths.shape
-    device = means2d.device
     n_bits = tile_n_bits(tile_width, tile_height)
     camera_bits = max(n_cameras, 1).bit_length()
     if n_bits + camera_bits > ISECT_KEY_HIGH_BITS:
@@ -89,16 +89,29 @@ def isect_tiles(
     visible = (radii[..., 0] > 0) & (radii[..., 1] > 0)
     span = (tile_max - tile_min).clamp(min=0)  # [C, N, 2]
     counts = torch.where(visible, span[..., 0] * span[..., 1], torch.zeros_like(span[..., 0]))  # [C, N]
+    if sort and means2d.device.type == "cpu" and n_gauss > 0:
+        isect_ids, flatten_ids = _bin_counting_sort(depths, visible, tile_min, tile_max, counts, tile_width, tile_height)
+    else:
+        isect_ids, flatten_ids = _bin_sort_keys(depths, tile_min, span, counts, tile_width, tile_height, sort)
+    return TileIntersections(counts.to(torch.int32), isect_ids, flatten_ids.to(torch.int32))
 
+
+def _bin_sort_keys(
+    depths: Tensor, tile_min: Tensor, span: Tensor, counts: Tensor, tile_width: int, tile_height: int, sort: bool
+) -> tuple[Tensor, Tensor]:
+    """Vectorized binning: every intersection's key in pair order, then a stable sort (any device). -> [M], [M]."""
+    n_cameras, n_gauss = depths.shape
+    device = depths.device
+    n_bits = tile_n_bits(tile_width, tile_height)
     counts_flat = counts.reshape(-1)
     n_isects = int(counts_flat.sum().item())
     flatten_ids = torch.repeat_interleave(torch.arange(n_cameras * n_gauss, device=device), counts_flat)
     # Position of each intersection inside its pair's box, row-major over (y, x).
     starts = torch.cumsum(counts_flat, dim=0) - counts_flat
     local = torch.arange(n_isects, device=device) - starts[flatten_ids]
-    span_x = span[..., 0].reshape(-1)[flatten_ids]
-    tile_x = tile_min[..., 0].reshape(-1)[flatten_ids] + local % span_x.clamp(min=1)
-    tile_y = tile_min[..., 1].reshape(-1)[flatten_ids] + local // span_x.clamp(min=1)
+    span_x = span[..., 0].reshape(-1)[flatten_ids].clamp(min=1)
+    tile_x = tile_min[..., 0].reshape(-1)[flatten_ids] + local % span_x
+    tile_y = tile_min[..., 1].reshape(-1)[flatten_ids] + local // span_x
     tile_ids = tile_y * tile_width + tile_x
     camera_ids = flatten_ids // max(n_gauss, 1)
     isect_ids = (
@@ -107,7 +120,35 @@ def isect_tiles(
     if sort and n_isects > 0:
         isect_ids, order = torch.sort(isect_ids, stable=True)
         flatten_ids = flatten_ids[order]
-    return TileIntersections(counts.to(torch.int32), isect_ids, flatten_ids.to(torch.int32))
+    return isect_ids, flatten_ids
+
+
+def _bin_counting_sort(
+    depths: Tensor, visible: Tensor, tile_min: Tensor, tile_max: Tensor, counts: Tensor, tile_width: int,
+    tile_height: int,
+) -> tuple[Tensor, Tensor]:
+    """CPU binning: sort the visible pairs by (camera, depth) once, then bucket them by tile (O(M), numba).
+
+    Same output as :func:`_bin_sort_keys` with ``sort=True``. -> [M] int64, [M] int64.
+    """
+    from ._tiles_kernels import bin_pairs_by_tile
+
+    n_cameras, n_gauss = depths.shape
+    bits = depth_key(depths).reshape(-1)
+    pairs = torch.nonzero(visible.reshape(-1)).squeeze(1)
+    camera_of_pair = pairs // n_gauss
+    _, order = torch.sort((camera_of_pair << DEPTH_BITS) | bits[pairs], stable=True)
+    n_isects = int(counts.sum().item())
+    isect_ids = torch.empty(n_isects, dtype=torch.int64)
+    flatten_ids = torch.empty(n_isects, dtype=torch.int64)
+    bin_pairs_by_tile(
+        pairs[order].numpy(), n_gauss,
+        tile_min[..., 0].reshape(-1).contiguous().numpy(), tile_min[..., 1].reshape(-1).contiguous().numpy(),
+        tile_max[..., 0].reshape(-1).contiguous().numpy(), tile_max[..., 1].reshape(-1).contiguous().numpy(),
+        bits.contiguous().numpy(), tile_width * tile_height, tile_width, tile_n_bits(tile_width, tile_height),
+        DEPTH_BITS, isect_ids.numpy(), flatten_ids.numpy(),
+    )
+    return isect_ids, flatten_ids
 
 
 @torch.no_grad()

@@ -1,0 +1,101 @@
+"""Method discovery: the built-in methods, a throwaway installed distribution's entry point, the environment variable,
+and the dotted command-line overrides of ``kc-train``."""
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from kc_splatfacto.cli.train import parse_config
+from kc_splatfacto.registry import discover_methods
+
+PROJECT_ROOT = Path(__file__).resolve().parents[1]
+BUILT_IN = ["splatfacto", "kc-splatfacto", "kc-splatfacto-fine", "kc-ablation-l1-wavelet", "kc-ablation-wavelet",
+            "kc-ablation-unscaled-wavelet", "kc-ablation-heavy-wavelet", "kc-ablation-scaled-cbc"]
+
+
+def run_help(extra_path: Path | None = None, env_extra: dict | None = None) -> str:
+    env = dict(os.environ, COLUMNS="200")
+    if extra_path is not None:
+        env["PYTHONPATH"] = os.pathsep.join([str(extra_path), env.get("PYTHONPATH", "")])
+    env.update(env_extra or {})
+    code = "import sys; from kc_splatfacto.cli.train import entrypoint; sys.exit(entrypoint(['--help']))"
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120,
+                          cwd=PROJECT_ROOT)
+    assert proc.returncode == 0, proc.stderr
+    return proc.stdout
+
+
+def test_builtin_methods_are_registered_with_the_papers_weights():
+    methods = discover_methods()
+    assert set(BUILT_IN) <= set(methods)
+    kc = methods["kc-splatfacto"].config.pipeline.model
+    assert (kc.wavelet_weight, kc.kc_weight, kc.cbc_weight, kc.wave, kc.wavelet_levels) == (1e-3, 1e-5, 1e-2, "db3", 3)
+    assert kc.kc_supervised and kc.cbc_supervised and kc.wavelet_weighting == "paper"
+    base = methods["splatfacto"].config.pipeline.model
+    assert (base.wavelet_weight, base.kc_weight, base.cbc_weight, base.ssim_lambda) == (0.0, 0.0, 0.0, 0.2)
+    assert methods["kc-splatfacto-fine"].config.pipeline.model.wavelet_weighting == "fine"
+    assert methods["kc-ablation-l1-wavelet"].config.pipeline.model.ssim_lambda == 0.0
+    assert methods["kc-ablation-unscaled-wavelet"].config.pipeline.model.wavelet_weighting == "uniform"
+    assert methods["kc-ablation-scaled-cbc"].config.pipeline.model.cbc_correlation
+    for name in BUILT_IN:
+        assert methods[name].config.method_name == name
+
+
+def test_throwaway_distribution_registers_a_method_seen_by_kc_train_help(tmp_path):
+    (tmp_path / "kc_dummy_plugin.py").write_text(textwrap.dedent("""
+        from kc_splatfacto.engine.config import TrainerConfig
+        from kc_splatfacto.registry import MethodSpecification
+
+        dummy = MethodSpecification(config=TrainerConfig(method_name="dummy-splats"),
+                                    description="a dummy method from a throwaway plugin")
+    """))
+    dist_info = tmp_path / "kc_dummy_plugin-0.0.1.dist-info"
+    dist_info.mkdir()
+    (dist_info / "METADATA").write_text("Metadata-Version: 2.1\nName: kc-dummy-plugin\nVersion: 0.0.1\n")
+    (dist_info / "entry_points.txt").write_text(
+        "[kc_splatfacto.method_configs]\ndummy-splats = kc_dummy_plugin:dummy\n"
+    )
+    output = run_help(tmp_path)
+    assert "dummy-splats" in output and "a dummy method from a throwaway plugin" in output
+    for name in BUILT_IN:
+        assert name in output
+    assert "dummy-splats" not in run_help()  # nothing leaks into this process's environment
+
+
+def test_environment_variable_adds_a_method(tmp_path):
+    (tmp_path / "kc_env_plugin.py").write_text(
+        "from kc_splatfacto.engine.config import TrainerConfig\n"
+        "from kc_splatfacto.registry import MethodSpecification\n"
+        "spec = MethodSpecification(TrainerConfig(method_name='env-splats'), 'named by KC_SPLATFACTO_METHOD_CONFIGS')\n"
+    )
+    output = run_help(tmp_path, {"KC_SPLATFACTO_METHOD_CONFIGS": "env-splats=kc_env_plugin:spec"})
+    assert "env-splats" in output and "named by KC_SPLATFACTO_METHOD_CONFIGS" in output
+
+
+def test_dotted_overrides_reach_the_config():
+    config = parse_config([
+        "kc-splatfacto", "--data", "demo", "--max-num-iterations", "300", "--pipeline.model.kc-weight", "1e-3",
+        "--pipeline.model.wavelet-weighting", "fine", "--pipeline.datamanager.downscale-factor", "4",
+        "--eval-at-steps", "0", "10", "100", "--machine.seed", "3", "--optimizers.means.optimizer.lr", "2e-4",
+    ])
+    assert config.method_name == "kc-splatfacto"
+    assert config.max_num_iterations == 300
+    assert config.pipeline.model.kc_weight == 1e-3
+    assert config.pipeline.model.cbc_weight == 1e-2  # untouched defaults stay the method's
+    assert config.pipeline.model.wavelet_weighting == "fine"
+    assert config.pipeline.datamanager.downscale_factor == 4
+    assert config.eval_at_steps == (0, 10, 100)
+    assert config.machine.seed == 3 and config.optimizers.means.optimizer.lr == 2e-4
+    config.resolve_aliases()
+    assert str(config.pipeline.datamanager.data) == "demo"
+    # the registered defaults were not mutated by parsing
+    assert discover_methods()["kc-splatfacto"].config.max_num_iterations == 30000
+
+
+def test_unknown_option_is_rejected():
+    with pytest.raises(SystemExit):
+        parse_config(["kc-splatfacto", "--pipeline.model.no-such-weight", "1"])

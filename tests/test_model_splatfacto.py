@@ -1,0 +1,109 @@
+"""The model: outputs contract, loss-dict keys by weight, the Splatfacto loss formula, metrics."""
+
+import itertools
+
+import numpy as np
+import pytest
+import torch
+
+from kc_splatfacto.data import ImageDataset
+from kc_splatfacto.data.demo import DemoDataParserConfig
+from kc_splatfacto.model.splatfacto import EVAL_BACKGROUND, SplatfactoModelConfig
+
+
+@pytest.fixture(scope="module")
+def demo_train():
+    parser = DemoDataParserConfig(width=64, height=48).setup()
+    outputs = parser.get_dataparser_outputs("train")
+    return outputs, ImageDataset(outputs)
+
+
+def make_model(demo_train, **overrides):
+    outputs, dataset = demo_train
+    config = SplatfactoModelConfig(num_downscales=0, **overrides)
+    torch.manual_seed(0)
+    model = config.setup(scene_scale=outputs.scene_scale, num_train_data=len(dataset),
+                         seed_points=(outputs.points3d_xyz, outputs.points3d_rgb))
+    return model, dataset
+
+
+def test_outputs_contract(demo_train):
+    model, dataset = make_model(demo_train)
+    model.train()
+    out = model.get_outputs(dataset.cameras[0])
+    assert out["rgb"].shape == (48, 64, 3) and out["accumulation"].shape == (48, 64, 1)
+    assert out["depth"] is None  # no depth while training (Splatfacto's default)
+    assert 0 <= out["rgb"].min() and out["rgb"].max() <= 1
+    assert out["background"].shape == (3,)
+    background_a = out["background"]
+    background_b = model.get_outputs(dataset.cameras[0])["background"]
+    assert not torch.equal(background_a, background_b)  # random background in training
+    model.eval()
+    with torch.no_grad():
+        out = model.get_outputs(dataset.cameras[0])
+    assert out["depth"].shape == (48, 64, 1)
+    assert torch.allclose(out["background"], torch.tensor(EVAL_BACKGROUND))
+    # empty pixels show the background: rgb = render + (1 - alpha) * background
+    empty = out["accumulation"][..., 0] < 1e-6
+    if empty.any():
+        assert torch.allclose(out["rgb"][empty], torch.tensor(EVAL_BACKGROUND).expand(int(empty.sum()), 3))
+
+
+@pytest.mark.parametrize("weights", list(itertools.product([0.0, 1e-3], [0.0, 1e-5], [0.0, 1e-2])))
+def test_loss_terms_present_only_when_weighted(demo_train, weights):
+    wavelet, kc, cbc = weights
+    model, dataset = make_model(demo_train, wavelet_weight=wavelet, kc_weight=kc, cbc_weight=cbc)
+    model.train()
+    out = model.get_outputs(dataset.cameras[0])
+    losses = model.get_loss_dict(out, {"image": dataset.image_uint8(0), "image_idx": 0})
+    expected = {"main_loss"} | {name for name, w in zip(("wavelet_loss", "kc_loss", "cbc_loss"), weights) if w > 0}
+    assert set(losses) == expected
+    assert all(torch.isfinite(v) and v >= 0 for v in losses.values())
+    assert (model.frequency_loss is None) == (not any(weights))
+
+
+def test_scale_regularization_only_when_enabled(demo_train):
+    model, dataset = make_model(demo_train, use_scale_regularization=True)
+    model.train()
+    model.step = 10
+    with torch.no_grad():
+        model.gauss_params["scales"][0] = torch.tensor([0.0, -5.0, -5.0])  # ratio e^5 > 10
+    out = model.get_outputs(dataset.cameras[0])
+    losses = model.get_loss_dict(out, {"image": dataset.image_uint8(0), "image_idx": 0})
+    scales = model.scales.detach().exp()
+    ratio = scales.amax(-1) / scales.amin(-1)
+    assert torch.isclose(losses["scale_reg"], 0.1 * (ratio.clamp_min(10.0) - 10.0).mean())
+    plain, _ = make_model(demo_train)
+    plain.train()
+    assert "scale_reg" not in plain.get_loss_dict(plain.get_outputs(dataset.cameras[0]),
+                                                  {"image": dataset.image_uint8(0), "image_idx": 0})
+
+
+def test_main_loss_is_splatfactos_formula(demo_train):
+    from kornia.metrics import ssim as kornia_ssim
+
+    model, dataset = make_model(demo_train)
+    model.eval()  # fixed background: the oracle sees the same render
+    with torch.no_grad():
+        out = model.get_outputs(dataset.cameras[3])
+        losses = model.get_loss_dict(out, {"image": dataset.image_uint8(3), "image_idx": 3})
+    pred = out["rgb"].double().numpy()
+    gt = dataset.image_uint8(3).double().numpy() / 255.0
+    l1 = np.abs(pred - gt).mean()
+    ssim = float(kornia_ssim(out["rgb"].permute(2, 0, 1)[None], dataset.image_float(3).permute(2, 0, 1)[None], 11).mean())
+    assert np.isclose(float(losses["main_loss"]), 0.8 * l1 + 0.2 * (1 - ssim), rtol=1e-5)
+
+
+def test_metrics_and_logging_kurtosis(demo_train):
+    model, dataset = make_model(demo_train)
+    model.eval()
+    with torch.no_grad():
+        out = model.get_outputs(dataset.cameras[1])
+    batch = {"image": dataset.image_uint8(1), "image_idx": 1}
+    plain = model.get_metrics_dict(out, batch)
+    assert set(plain) == {"psnr", "gaussian_count"} and plain["gaussian_count"] == model.num_points
+    mse = ((out["rgb"].double() - dataset.image_uint8(1).double() / 255) ** 2).mean()
+    assert np.isclose(plain["psnr"], float(10 * torch.log10(1 / mse)), atol=1e-3)
+    logged = model.get_metrics_dict(out, batch, with_kurtosis=True)
+    assert len(logged["kurtosis_render"]) == 9 and len(logged["kurtosis_gt"]) == 9
+    assert all(np.isfinite(logged["kurtosis_gt"]))

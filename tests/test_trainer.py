@@ -1,0 +1,197 @@
+"""Trainer: bit-identical resume, checkpoints, metrics schema, stiff cases (non-finite steps, paper's failing weights,
+zero Gaussians), GT wavelet caching and the schedule compression."""
+
+import json
+import math
+
+import pytest
+import torch
+
+from kc_splatfacto.engine.checkpoints import list_checkpoints
+from kc_splatfacto.engine.logging import read_metrics
+from kc_splatfacto.engine.trainer import Trainer, TrainingDivergedError
+from kc_splatfacto.model.strategy import NoGaussiansLeftError
+from tests.training_utils import tiny_demo_config
+
+
+def test_resume_is_bit_identical_to_an_uninterrupted_run(tmp_path):
+    # 40 steps, refinement every 2 steps after step 10, opacity reset at 60 (not reached): the interruption at 17 falls
+    # between refinements, so optimizer, schedule, density statistics, image order and RNG must all be restored.
+    def config(name):
+        c = tiny_demo_config("kc-splatfacto", tmp_path / name, iterations=40, steps_scale=0.02)
+        c.machine.seed = 7
+        return c
+
+    full = Trainer(config("full"))
+    full.train()
+
+    stopped = Trainer(config("stopped"))
+    original = stopped.train_iteration
+
+    def stop_after_17(step):
+        result = original(step)
+        if step == 16:
+            stopped.request_stop()
+        return result
+
+    stopped.train_iteration = stop_after_17
+    run_dir = stopped.train()
+    assert stopped.interrupted
+    assert [p.name for p in list_checkpoints(run_dir / "nerfstudio_models")] == ["step-000000017.ckpt"]
+
+    resume_config = config("stopped")
+    resume_config.load_dir = run_dir / "nerfstudio_models"
+    resumed = Trainer(resume_config)
+    assert resumed.train() == run_dir
+    assert resumed.start_step == 17
+    assert full.model.num_points == resumed.model.num_points
+    assert full.model.num_points != 2000  # density control did run
+    for name, param in full.model.gauss_params.items():
+        assert torch.equal(param, resumed.model.gauss_params[name]), name
+    for name in full.optimizers:
+        a = full.optimizers[name].state_dict()["state"][0]
+        b = resumed.optimizers[name].state_dict()["state"][0]
+        assert torch.equal(a["exp_avg_sq"], b["exp_avg_sq"]), name
+    assert full.optimizers["means"].param_groups[0]["lr"] == resumed.optimizers["means"].param_groups[0]["lr"]
+    # one continuous log: train records of both halves, step numbers strictly increasing
+    steps = [r["step"] for r in read_metrics(run_dir / "metrics.jsonl") if r["kind"] == "train"]
+    assert steps == list(range(10, 41, 10))
+
+
+def test_metrics_schema_and_run_folder(tmp_path):
+    config = tiny_demo_config("kc-splatfacto", tmp_path, iterations=20)
+    config.eval_at_steps = (0, 10)
+    run_dir = Trainer(config).train()
+    assert run_dir == tmp_path / "tiny-demo" / "kc-splatfacto" / "run"
+    for name in ("config.yml", "dataparser_transforms.json", "nerfstudio_models/step-000000020.ckpt"):
+        assert (run_dir / name).is_file(), name
+    transform = json.loads((run_dir / "dataparser_transforms.json").read_text())
+    assert len(transform["transform"]) == 3 and len(transform["transform"][0]) == 4
+    records = read_metrics(run_dir / "metrics.jsonl")
+    for record in records:
+        assert isinstance(record["step"], int) and record["kind"] in ("train", "eval", "densify", "checkpoint")
+        assert record["elapsed_s"] >= record["train_s"] >= 0
+    evals = [r for r in records if r["kind"] == "eval"]
+    assert [r["step"] for r in evals] == [0, 10, 20]
+    assert evals[0]["train_s"] == 0.0
+    for r in evals:
+        assert 0 < r["ssim"] <= 1 and r["psnr"] > 5 and r["num_images"] == 12
+        assert r["lpips"] is None and "LPIPS" in r["lpips_unavailable"]
+    trains = [r for r in records if r["kind"] == "train"]
+    assert [r["step"] for r in trains] == [10, 20]
+    for r in trains:
+        assert {"main_loss", "wavelet_loss", "kc_loss", "cbc_loss", "loss", "gaussian_count"} <= set(r)
+        assert math.isclose(r["loss"], r["main_loss"] + r["wavelet_loss"] + r["kc_loss"] + r["cbc_loss"], rel_tol=1e-6)
+        assert len(r["kurtosis_render"]) == 9 and len(r["kurtosis_gt"]) == 9
+    times = [r["elapsed_s"] for r in records]
+    assert times == sorted(times)
+
+
+def test_wavelet_targets_are_computed_once_per_training_image(tmp_path, monkeypatch):
+    config = tiny_demo_config("kc-splatfacto", tmp_path, iterations=30)
+    trainer = Trainer(config)
+    trainer.setup()
+    calls = []
+    loss = trainer.model.frequency_loss
+    original = loss.prepare_target
+    monkeypatch.setattr(loss, "prepare_target", lambda gt: calls.append(gt.shape) or original(gt))
+    trainer.train()
+    assert len(calls) == 12  # 30 steps = 2.5 epochs over 12 images, one target each
+
+
+def test_non_finite_loss_skips_the_step_and_repeated_ones_stop_training(tmp_path):
+    config = tiny_demo_config("splatfacto", tmp_path, iterations=30)
+    config.max_consecutive_bad_steps = 3
+    trainer = Trainer(config)
+    trainer.setup()
+    model = trainer.model
+    original = model.get_loss_dict
+    bad_steps = {5, 12, 13, 14}
+
+    def poisoned(outputs, batch):
+        losses = original(outputs, batch)
+        if model.step in bad_steps:
+            losses["main_loss"] = losses["main_loss"] * float("nan")
+        return losses
+
+    model.get_loss_dict = poisoned
+    snapshots = {}
+    original_iteration = trainer.train_iteration
+
+    def recording(step):
+        snapshots[step] = model.means.detach().clone()
+        return original_iteration(step)
+
+    trainer.train_iteration = recording
+    with pytest.raises(TrainingDivergedError, match="3 consecutive bad steps") as error:
+        trainer.train()
+    assert torch.equal(snapshots[5], snapshots[6])  # the skipped step changed nothing
+    assert not torch.equal(snapshots[6], snapshots[7])  # a good step after the skipped one updates again
+    records = read_metrics(trainer.run_dir / "metrics.jsonl")
+    bad = [r for r in records if r["kind"] == "bad_step"]
+    assert [r["step"] for r in bad] == [6, 13, 14, 15]
+    assert "non-finite loss" in bad[0]["reason"]
+    # the last good state is saved and finite
+    checkpoint = list_checkpoints(trainer.run_dir / "nerfstudio_models")[-1]
+    assert checkpoint.name in str(error.value)
+    state = torch.load(checkpoint, weights_only=False)
+    assert state["step"] == 15  # iterations consumed, skipped ones included (the schedules advanced with them)
+    assert all(torch.isfinite(v).all() for v in state["model"].values())
+
+
+def test_non_finite_parameters_remove_their_gaussians(tmp_path):
+    config = tiny_demo_config("splatfacto", tmp_path, iterations=12)
+    trainer = Trainer(config)
+    trainer.setup()
+    original = trainer.train_iteration
+
+    def corrupt(step):
+        if step == 4:
+            with torch.no_grad():
+                trainer.optimizers["scales"].param_groups[0]["params"][0][:3] = float("inf")
+        return original(step)
+
+    trainer.train_iteration = corrupt
+    n0 = trainer.model.num_points
+    trainer.train()
+    records = read_metrics(trainer.run_dir / "metrics.jsonl")
+    assert any(r["kind"] == "bad_step" and "3 Gaussians removed" in r["reason"] for r in records)
+    assert trainer.model.num_points == n0 - 3
+    assert all(torch.isfinite(p).all() for p in trainer.model.gauss_params.values())
+
+
+def test_papers_failing_weights_train_without_nan(tmp_path):
+    # supplementary table: KC 1e-3, CBC 1.0 and wavelet 1.0 degrade the metrics but must stay finite
+    config = tiny_demo_config("kc-splatfacto", tmp_path, iterations=60, kc_weight=1e-3, cbc_weight=1.0,
+                              wavelet_weight=1.0)
+    trainer = Trainer(config)
+    trainer.train()
+    records = read_metrics(trainer.run_dir / "metrics.jsonl")
+    assert not [r for r in records if r["kind"] == "bad_step"]
+    trains = [r for r in records if r["kind"] == "train"]
+    assert all(math.isfinite(r["loss"]) for r in trains) and trains[-1]["cbc_loss"] >= 0
+    assert all(torch.isfinite(p).all() for p in trainer.model.gauss_params.values())
+
+
+def test_culling_every_gaussian_is_a_clear_error(tmp_path):
+    config = tiny_demo_config("splatfacto", tmp_path, iterations=30, cull_alpha_thresh=0.99)
+    with pytest.raises(NoGaussiansLeftError, match="removed every Gaussian"):
+        Trainer(config).train()
+
+
+def test_steps_scale_compresses_every_schedule(tmp_path):
+    config = tiny_demo_config("splatfacto", tmp_path, steps_scale=0.1, num_downscales=2)
+    trainer = Trainer(config)
+    trainer.setup()
+    model, strategy = trainer.model, trainer.model.strategy
+    assert (strategy.refine_start_iter, strategy.refine_every, strategy.reset_every) == (50, 10, 300)
+    assert (strategy.refine_stop_iter, strategy.refine_scale2d_stop_iter) == (1500, 400)
+    assert strategy.pause_refine_after_reset == 12 + 10
+    model.step = 99
+    assert model.sh_degree_to_use() == 0 and model.get_downscale_factor() == 4
+    model.step = 100
+    assert model.sh_degree_to_use() == 1
+    model.step = 300
+    assert model.get_downscale_factor() == 2
+    model.step = 5000
+    assert model.sh_degree_to_use() == 3 and model.get_downscale_factor() == 1

@@ -1,0 +1,37 @@
+"""Small training runs on the generated demo scene at tiny resolution, shared by the trainer and e2e tests."""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+from kc_splatfacto.data.demo import DemoDataParserConfig
+from kc_splatfacto.engine.config import TrainerConfig
+from kc_splatfacto.registry import discover_methods
+
+TINY_WIDTH, TINY_HEIGHT = 64, 48
+
+
+def tiny_demo_config(method: str, output_dir: Path, iterations: int = 60, steps_scale: float = 0.02,
+                     **model_overrides) -> TrainerConfig:
+    """``method``'s config on the 64x48 demo scene, schedules compressed, no progress bar, no periodic eval."""
+    config: TrainerConfig = copy.deepcopy(discover_methods()[method].config)
+    config.pipeline.datamanager.dataparser = DemoDataParserConfig(width=TINY_WIDTH, height=TINY_HEIGHT)
+    config.output_dir = Path(output_dir)
+    config.experiment_name = "tiny-demo"
+    config.timestamp = "run"
+    config.max_num_iterations = iterations
+    config.steps_per_eval_all_images = 0
+    config.steps_per_save = 10**9
+    config.logging.progress_bar = False
+    config.logging.steps_per_log = 10
+    config.machine.device = "cpu"
+    model = config.pipeline.model
+    model.steps_scale = steps_scale
+    model.num_downscales = 0
+    model.max_num_gaussians = 20000
+    for key, value in model_overrides.items():
+        if not hasattr(model, key):
+            raise AttributeError(f"model config has no field {key}")
+        setattr(model, key, value)
+    return config
