@@ -145,3 +145,19 @@ def test_log_spaced_steps():
     assert bench.log_spaced_steps(3, 10) == (1, 2, 3)
     with pytest.raises(ValueError):
         bench.log_spaced_steps(0, 3)
+
+
+def test_paired_deltas_match_numpy(tmp_path):
+    rows, truth = _fake_runs(tmp_path)
+    (entry,) = report.paired_deltas(rows, "splatfacto")
+    assert entry["method"] == "kc-splatfacto" and entry["seeds"] == [0, 1, 2]
+    psnr = [truth[("kc-splatfacto", s, 300)][0] - truth[("splatfacto", s, 300)][0] for s in range(3)]
+    ssim = [100 * (truth[("kc-splatfacto", s, 300)][1] / truth[("splatfacto", s, 300)][1] - 1) for s in range(3)]
+    np.testing.assert_allclose(entry["psnr_db"], psnr, rtol=1e-12)
+    np.testing.assert_allclose(entry["ssim_pct"], ssim, rtol=1e-9)
+    assert entry["psnr_db_mean"] == pytest.approx(np.mean(psnr), rel=1e-12)
+    assert entry["lpips_pct_mean"] is None
+    table = report.markdown_paired_table([entry], "splatfacto")
+    assert f"{np.mean(psnr):+.2f}" in table and f"{psnr[1]:+.2f}" in table
+    paths = report.write_report(rows, tmp_path / "out", baseline="splatfacto")
+    assert "Per-seed differences" in paths["table"].read_text()

@@ -301,6 +301,57 @@ def markdown_table(summary: Sequence[dict], baseline: str | None = None, lpips_n
     return "\n".join(lines + notes) + "\n"
 
 
+def paired_deltas(rows: Sequence[dict], baseline: str) -> list[dict]:
+    """Per (scene, method), the final-metric differences to ``baseline`` run with the same seed.
+
+    Runs that share a seed share the initial Gaussians and the image order, so pairing removes the seed-to-seed
+    variation that dominates short runs. Returns ``seeds``, ``psnr_db`` (per-seed differences, dB), ``ssim_pct``
+    and ``lpips_pct`` (relative, %; None where unavailable), with their ``_mean``.
+    """
+    finals = {(r["scene"], r["method"], r["seed"]): r for r in final_rows(rows)}
+    out = []
+    for scene, method in dict.fromkeys((k[0], k[1]) for k in finals):
+        if method == baseline:
+            continue
+        seeds = sorted(k[2] for k in finals if k[:2] == (scene, method) and (scene, baseline, k[2]) in finals)
+        if not seeds:
+            continue
+        entry: dict = {"scene": scene, "method": method, "seeds": seeds}
+        for key, delta in (("psnr_db", _diff), ("ssim_pct", _rel_pct), ("lpips_pct", _rel_pct)):
+            metric = key.split("_")[0]
+            values = [delta(finals[(scene, method, s)][metric], finals[(scene, baseline, s)][metric]) for s in seeds]
+            entry[key] = values
+            present = [v for v in values if v is not None]
+            entry[f"{key}_mean"] = float(np.mean(present)) if present else None
+        out.append(entry)
+    return out
+
+
+def markdown_paired_table(paired: Sequence[dict], baseline: str) -> str:
+    """Markdown of :func:`paired_deltas`: per-seed differences to the baseline and their mean."""
+    if not paired:
+        return ""
+
+    def cells(values: list, mean: float | None, digits: int) -> str:
+        if mean is None:
+            return "n/a | n/a"
+        return " / ".join(f"{v:+.{digits}f}" for v in values) + f" | {mean:+.{digits}f}"
+
+    lines = [
+        f"Per-seed differences to `{baseline}` at the same seed (final evaluation):",
+        "",
+        "| scene | method | seeds | ΔPSNR per seed (dB) | mean | ΔSSIM per seed (%) | mean |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for e in paired:
+        seeds = " / ".join(str(s) for s in e["seeds"])
+        lines.append(
+            f"| {e['scene']} | {e['method']} | {seeds} | {cells(e['psnr_db'], e['psnr_db_mean'], 2)} | "
+            f"{cells(e['ssim_pct'], e['ssim_pct_mean'], 2)} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
 def write_report(
     rows: Sequence[dict],
     out_dir: str | Path,
@@ -321,7 +372,11 @@ def write_report(
     paths["summary"] = out_dir / "summary.json"
     paths["summary"].write_text(json.dumps(summary, indent=1))
     paths["table"] = out_dir / "results.md"
-    paths["table"].write_text(markdown_table(summary, baseline, lpips_note))
+    table = markdown_table(summary, baseline, lpips_note)
+    if baseline:
+        paired = markdown_paired_table(paired_deltas(rows, baseline), baseline)
+        table += ("\n" + paired) if paired else ""
+    paths["table"].write_text(table)
     for metric in METRICS:
         png = out_dir / f"{metric}_vs_time.png"
         if plot_metric_vs_time(rows, metric, png, time_key, baseline):
