@@ -133,6 +133,8 @@ def test_bench_two_methods_one_seed_demo(tmp_path):
     assert "splatfacto (baseline)" in table and "| kc-splatfacto |" in table
     assert (out / "command.txt").read_text().startswith("kc-bench --data demo")
     assert not (out / "lpips_vs_time.png").exists()
+    gap = cv2.imread(str(out / "kurtosis_gap_demo.png"), cv2.IMREAD_COLOR)  # kurtosis is logged at step 10
+    assert gap is not None and gap.std() > 0
 
 
 def test_log_spaced_steps():

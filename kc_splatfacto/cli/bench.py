@@ -3,7 +3,8 @@
 Each (scene, method, seed) is one ordinary training run through :class:`Trainer`, evaluated on the test split at
 log-spaced steps (``eval_at_steps``); the report (:mod:`kc_splatfacto.engine.report`) then writes, under
 ``--output-dir``: ``evals.csv`` / ``evals.json`` (every evaluation), ``summary.json``, ``results.md`` (final metrics
-with deltas vs the baseline), ``<metric>_vs_time.png`` and ``command.txt`` (the exact command line). The report is
+with deltas vs the baseline, also per seed), ``<metric>_vs_time.png``, ``kurtosis_gap_<scene>.png`` (the render-vs-GT
+band-kurtosis gap over training) and ``command.txt`` (the exact command line). The report is
 rewritten after every finished run, so an interrupted benchmark still leaves the runs it finished; ``--resume`` skips
 runs whose folder already holds a final evaluation.
 
@@ -196,8 +197,32 @@ def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
                 )
                 (out_dir / "runs.json").write_text(json.dumps(runs, indent=1))
                 paths = write_report(rows, out_dir, baseline=baseline, time_key=args.time_key, lpips_note=lpips_note)
+    paths.update(write_kurtosis_gap_plots(runs, out_dir))
     paths["command"] = out_dir / "command.txt"
     paths["runs"] = out_dir / "runs.json"
+    return paths
+
+
+def write_kurtosis_gap_plots(runs: Sequence[dict], out_dir: Path) -> dict[str, Path]:
+    """Per scene, ``kurtosis_gap_<scene>.png``: the render-vs-GT band-kurtosis gap over training, one curve per
+    method, for the lowest seed (see :func:`kc_splatfacto.engine.diagnostics.plot_kurtosis_gap_comparison`)."""
+    from kc_splatfacto.engine.diagnostics import plot_kurtosis_gap_comparison
+    from kc_splatfacto.engine.report import read_metrics_jsonl
+
+    paths = {}
+    for scene in dict.fromkeys(r["scene"] for r in runs):
+        seed = min(r["seed"] for r in runs if r["scene"] == scene)
+        records = {
+            r["method"]: read_metrics_jsonl(Path(r["run_dir"]) / "metrics.jsonl")
+            for r in runs
+            if r["scene"] == scene and r["seed"] == seed
+        }
+        try:
+            paths[f"kurtosis_gap_{scene}"] = plot_kurtosis_gap_comparison(
+                records, out_dir / f"kurtosis_gap_{scene}.png", title=f"{scene}, seed {seed}"
+            )
+        except ValueError as exc:  # runs shorter than the logging interval carry no kurtosis
+            print(f"[kc-bench] no kurtosis gap plot for {scene}: {exc}", flush=True)
     return paths
 
 
