@@ -201,3 +201,20 @@ def test_real_render_fills_absgrad_for_visible_gaussians():
     assert torch.equal(state["count"] > 0, visible)
     expected = (info["means2d"].absgrad[0] * torch.tensor([16.0, 12.0])).norm(dim=-1)
     assert torch.allclose(state["grad2d"], torch.where(visible, expected, torch.zeros_like(expected)))
+
+
+def test_growth_cap_keeps_the_highest_gradient_candidates():
+    n = 5
+    params = make_params(n)
+    with torch.no_grad():
+        params["scales"][:] = math.log(0.001)  # all small: duplication, one new Gaussian each
+        params["opacities"][:] = 2.0
+    strategy = DefaultStrategy(prune_opa=0.1, grow_grad2d=0.0008, absgrad=True, refine_start_iter=0, refine_every=1,
+                               reset_every=1000, max_gaussians=7)
+    state = strategy.initialize_state()
+    norms = [0.002, 0.005, 0.0001, 0.003, 0.004]  # four above the threshold, room for two
+    grads = [[g / 50, 0.0] for g in norms]
+    before = params["means"].detach().clone()
+    report = strategy.step_post_backward(params, {}, state, 1, synthetic_info(grads, [[2, 2]] * n))
+    assert report["duplicated"] == 2 and len(params["means"]) == 7
+    assert torch.equal(params["means"][5:], before[[1, 4]])  # the two largest gradients

@@ -25,6 +25,14 @@ from kc_splatfacto.model.splatfacto import SplatfactoModelConfig
 TIMESTAMP_FORMAT = "%Y-%m-%d_%H%M%S"
 
 
+def _gsplat_importable() -> bool:
+    try:
+        import gsplat  # noqa: F401
+    except Exception:  # ImportError, or a CUDA build failing at import
+        return False
+    return True
+
+
 @dataclass
 class MachineConfig:
     """Where and how reproducibly to run."""
@@ -32,11 +40,13 @@ class MachineConfig:
     seed: int = 42
     """seed of torch, numpy and python's random"""
     device: str = "auto"
-    """'auto' (CUDA when available, else CPU), 'cpu', 'cuda', 'cuda:1', ..."""
+    """'auto' (CUDA when available and gsplat imports, else CPU), 'cpu', 'cuda', 'cuda:1', ..."""
 
     def resolve_device(self) -> torch.device:
         if self.device == "auto":
-            return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+            # CUDA only pays with gsplat's kernels: the rasterization backend "auto" refuses CUDA tensors without
+            # gsplat (the compiled rasterizer is CPU-only), so without gsplat training stays on the CPU
+            return torch.device("cuda" if torch.cuda.is_available() and _gsplat_importable() else "cpu")
         device = torch.device(self.device)
         if device.type == "cuda" and not torch.cuda.is_available():
             raise RuntimeError(f"--machine.device {self.device}: CUDA is not available here; use 'cpu' or 'auto'")
