@@ -1,0 +1,272 @@
+"""``kc-bench``: quality against training time for several methods, scenes and seeds under one step budget.
+
+Each (scene, method, seed) is one ordinary training run through :class:`Trainer`, evaluated on the test split at
+log-spaced steps (``eval_at_steps``); the report (:mod:`kc_splatfacto.engine.report`) then writes, under
+``--output-dir``: ``evals.csv`` / ``evals.json`` (every evaluation), ``summary.json``, ``results.md`` (final metrics
+with deltas vs the baseline, also per seed), ``<metric>_vs_time.png``, ``kurtosis_gap_<scene>.png`` (the render-vs-GT
+band-kurtosis gap over training) and ``command.txt`` (the exact command line). The report is
+rewritten after every finished run, so an interrupted benchmark still leaves the runs it finished; ``--resume`` skips
+runs whose folder already holds a final evaluation.
+
+Example (the committed castle-P30 result)::
+
+    kc-bench --data ../shared/data/castle-P30 --downscale-factor 4 --methods splatfacto kc-splatfacto \\
+        kc-splatfacto-fine --seeds 0 1 2 --max-num-iterations 800 --num-evals 8 --steps-scale 1 \\
+        --set pipeline.model.num_downscales=0 --output-dir docs/results/castle-P30 --runs-dir outputs/bench-castle-P30
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads: spin-waiting threads slow small ops
+
+import argparse
+import copy
+import json
+import shlex
+import sys
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+#: Splatfacto's schedule length; ``--steps-scale auto`` compresses every step-based schedule to the budget.
+SPLATFACTO_SCHEDULE_STEPS = 30000
+DEFAULT_METHODS = ("splatfacto", "kc-splatfacto")
+DEFAULT_BASELINE = "splatfacto"
+
+
+def log_spaced_steps(max_steps: int, num: int) -> tuple[int, ...]:
+    """About ``num`` distinct steps in [1, max_steps], geometrically spaced, always ending at ``max_steps``."""
+    if max_steps < 1:
+        raise ValueError(f"max_steps must be >= 1, got {max_steps}")
+    if num < 1:
+        raise ValueError(f"the number of evaluations must be >= 1, got {num}")
+    steps = np.unique(np.round(np.geomspace(1, max_steps, num)).astype(int))
+    return tuple(int(s) for s in sorted(set(steps.tolist()) | {max_steps}))
+
+
+def _coerce(text: str, current: Any) -> Any:
+    """Parse ``text`` to the type of the field's current value (bool/int/float/Path/str/None, tuples of ints)."""
+    if isinstance(current, bool):
+        if text.lower() not in ("true", "false", "1", "0"):
+            raise ValueError(f"expected true/false, got '{text}'")
+        return text.lower() in ("true", "1")
+    if isinstance(current, int):
+        return int(text)
+    if isinstance(current, float):
+        return float(text)
+    if isinstance(current, Path):
+        return Path(text)
+    if isinstance(current, tuple):
+        return tuple(int(v) for v in text.split(",") if v)
+    if current is None:
+        try:
+            return json.loads(text)
+        except json.JSONDecodeError:
+            return text
+    return text
+
+
+def apply_override(config: Any, assignment: str) -> None:
+    """Set a dotted field of a config from ``'pipeline.model.kc_weight=1e-4'`` (dashes read as underscores)."""
+    key, sep, value = assignment.partition("=")
+    if not sep:
+        raise ValueError(f"--set '{assignment}': expected dotted.field=value")
+    parts = key.strip().replace("-", "_").split(".")
+    target = config
+    for part in parts[:-1]:
+        if not hasattr(target, part):
+            raise ValueError(f"--set '{assignment}': {type(target).__name__} has no field '{part}'")
+        target = getattr(target, part)
+    if not hasattr(target, parts[-1]):
+        raise ValueError(f"--set '{assignment}': {type(target).__name__} has no field '{parts[-1]}'")
+    setattr(target, parts[-1], _coerce(value.strip(), getattr(target, parts[-1])))
+
+
+def build_run_config(
+    spec_config: Any,
+    *,
+    method: str,
+    data: Path,
+    seed: int,
+    max_steps: int,
+    eval_steps: Sequence[int],
+    runs_dir: Path,
+    experiment: str,
+    downscale_factor: int | None,
+    steps_scale: float | None,
+    device: str,
+    overrides: Sequence[str] = (),
+) -> Any:
+    """A fresh TrainerConfig for one bench run (the registered config is never modified)."""
+    config = copy.deepcopy(spec_config)
+    config.method_name = method
+    config.experiment_name = experiment
+    config.output_dir = runs_dir
+    config.timestamp = f"seed{seed}"
+    config.pipeline.datamanager.data = Path(data)
+    config.pipeline.datamanager.dataparser = None  # detected from data
+    if downscale_factor is not None:
+        config.pipeline.datamanager.downscale_factor = downscale_factor
+    config.max_num_iterations = max_steps
+    config.eval_at_steps = tuple(eval_steps)
+    config.steps_per_eval_all_images = 0  # only the log-spaced steps (and the last one)
+    config.steps_per_save = max_steps
+    config.machine.seed = seed
+    config.machine.device = device
+    config.logging.progress_bar = False
+    if steps_scale is not None:
+        config.pipeline.model.steps_scale = steps_scale
+    for assignment in overrides:
+        apply_override(config, assignment)
+    return config
+
+
+def _finished(run_dir: Path, max_steps: int) -> bool:
+    from kc_splatfacto.engine.report import read_metrics_jsonl
+
+    log = run_dir / "metrics.jsonl"
+    if not log.is_file():
+        return False
+    try:
+        records = read_metrics_jsonl(log)
+    except ValueError:
+        return False
+    return any(r.get("kind") == "eval" and int(r.get("step", -1)) == max_steps for r in records)
+
+
+def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
+    from kc_splatfacto.engine.report import eval_rows, read_metrics_jsonl, write_report
+    from kc_splatfacto.engine.trainer import Trainer
+    from kc_splatfacto.registry import discover_methods
+
+    methods_available = discover_methods()
+    unknown = [m for m in args.methods if m not in methods_available]
+    if unknown:
+        raise ValueError(f"unknown method(s) {unknown}; registered: {', '.join(methods_available) or 'none'}")
+    out_dir = Path(args.output_dir)
+    runs_dir = Path(args.runs_dir) if args.runs_dir else out_dir / "runs"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "command.txt").write_text("kc-bench " + " ".join(shlex.quote(a) for a in argv) + "\n")
+    eval_steps = log_spaced_steps(args.max_num_iterations, args.num_evals)
+    if args.steps_scale == "auto":
+        steps_scale = args.max_num_iterations / SPLATFACTO_SCHEDULE_STEPS
+    elif args.steps_scale == "none":
+        steps_scale = None
+    else:
+        steps_scale = float(args.steps_scale)
+    rows: list[dict] = []
+    runs: list[dict] = []
+    lpips_note = None
+    baseline = args.baseline if args.baseline in args.methods else None
+    paths: dict[str, Path] = {}
+    for data in args.data:
+        scene = Path(str(data)).name if str(data) != "demo" else "demo"
+        for seed in args.seeds:
+            for method in args.methods:
+                config = build_run_config(
+                    methods_available[method].config, method=method, data=Path(data), seed=seed,
+                    max_steps=args.max_num_iterations, eval_steps=eval_steps, runs_dir=runs_dir,
+                    experiment=scene, downscale_factor=args.downscale_factor, steps_scale=steps_scale,
+                    device=args.device, overrides=args.set,
+                )
+                expected_dir = Path(runs_dir) / scene / method / f"seed{seed}"
+                start = time.perf_counter()
+                if args.resume and _finished(expected_dir, args.max_num_iterations):
+                    run_dir, status = expected_dir, "reused"
+                else:
+                    run_dir, status = Path(Trainer(config).train()), "trained"
+                records = read_metrics_jsonl(run_dir / "metrics.jsonl")
+                new_rows = eval_rows(records, scene, method, seed, run_dir)
+                rows += new_rows
+                lpips_note = lpips_note or next(
+                    (r.get("lpips_unavailable") for r in records if r.get("kind") == "eval" and r.get("lpips_unavailable")),
+                    None,
+                )
+                final = new_rows[-1] if new_rows else {}
+                runs.append({"scene": scene, "method": method, "seed": seed, "run_dir": str(run_dir), "status": status,
+                             "wall_s": time.perf_counter() - start})
+                print(
+                    f"[kc-bench] {scene} {method} seed {seed}: {status} in {time.perf_counter() - start:.0f}s, "
+                    f"final step {final.get('step')} PSNR {final.get('psnr')} SSIM {final.get('ssim')} "
+                    f"train_s {final.get('train_s')}",
+                    flush=True,
+                )
+                (out_dir / "runs.json").write_text(json.dumps(runs, indent=1))
+                paths = write_report(rows, out_dir, baseline=baseline, time_key=args.time_key, lpips_note=lpips_note)
+    paths.update(write_kurtosis_gap_plots(runs, out_dir))
+    paths["command"] = out_dir / "command.txt"
+    paths["runs"] = out_dir / "runs.json"
+    return paths
+
+
+def write_kurtosis_gap_plots(runs: Sequence[dict], out_dir: Path) -> dict[str, Path]:
+    """Per scene, ``kurtosis_gap_<scene>.png``: the render-vs-GT band-kurtosis gap over training, one curve per
+    method, for the lowest seed (see :func:`kc_splatfacto.engine.diagnostics.plot_kurtosis_gap_comparison`)."""
+    from kc_splatfacto.engine.diagnostics import plot_kurtosis_gap_comparison
+    from kc_splatfacto.engine.report import read_metrics_jsonl
+
+    paths = {}
+    for scene in dict.fromkeys(r["scene"] for r in runs):
+        seed = min(r["seed"] for r in runs if r["scene"] == scene)
+        records = {
+            r["method"]: read_metrics_jsonl(Path(r["run_dir"]) / "metrics.jsonl")
+            for r in runs
+            if r["scene"] == scene and r["seed"] == seed
+        }
+        try:
+            paths[f"kurtosis_gap_{scene}"] = plot_kurtosis_gap_comparison(
+                records, out_dir / f"kurtosis_gap_{scene}.png", title=f"{scene}, seed {seed}"
+            )
+        except ValueError as exc:  # runs shorter than the logging interval carry no kurtosis
+            print(f"[kc-bench] no kurtosis gap plot for {scene}: {exc}", flush=True)
+    return paths
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="kc-bench",
+        description="Train methods x scenes x seeds under one step budget; report test quality against training time.",
+    )
+    parser.add_argument("--data", nargs="+", required=True, help="scene folder(s), or 'demo'")
+    parser.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS), help="registered method names")
+    parser.add_argument("--baseline", default=DEFAULT_BASELINE, help="method the deltas are taken against")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--max-num-iterations", type=int, default=1000, help="the step budget of every run")
+    parser.add_argument("--num-evals", type=int, default=8, help="log-spaced test evaluations per run")
+    parser.add_argument("--downscale-factor", type=int, default=None, help="image downscale handed to the dataparser")
+    parser.add_argument(
+        "--steps-scale", default="none",
+        help="'none' keeps the method's schedule (the first N steps of Splatfacto's), 'auto' = budget / 30000 "
+             "(the whole schedule compressed to the budget: on sparse scenes it densifies every few steps and "
+             "overfits, see docs/results/README.md), or a number",
+    )
+    parser.add_argument("--device", default="cpu", help="'cpu', 'cuda', or 'auto'")
+    parser.add_argument("--time-key", choices=("train_s", "elapsed_s"), default="train_s",
+                        help="x axis: training seconds (evaluation excluded) or wall clock")
+    parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+                        help="dotted config overrides applied to every run, e.g. pipeline.model.rasterization_backend=cpu")
+    parser.add_argument("--output-dir", type=Path, default=Path("bench"), help="report folder")
+    parser.add_argument("--runs-dir", type=Path, default=None, help="run folders (default OUTPUT_DIR/runs)")
+    parser.add_argument("--resume", action="store_true", help="reuse runs that already reached the budget")
+    return parser
+
+
+def entrypoint(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    args = build_parser().parse_args(argv)
+    try:
+        paths = run_bench(args, argv)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"kc-bench: error: {exc}", file=sys.stderr)
+        return 2
+    for name, path in paths.items():
+        print(f"{name}: {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(entrypoint())

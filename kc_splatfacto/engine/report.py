@@ -1,0 +1,384 @@
+"""Error against run time: aggregate many runs' ``metrics.jsonl`` into tables, plots and a markdown summary.
+
+Input: the evaluation records every run writes (``{"kind": "eval", "step", "elapsed_s", "train_s", "psnr", "ssim",
+"lpips", ...}``), labelled with the run's scene, method and seed. Output:
+- a flat table of every evaluation (CSV / JSON),
+- per metric, a PNG of the metric against training seconds, one curve per method (mean over seeds, shaded min-max
+  spread over seeds), one panel per scene,
+- a markdown table of the final evaluation of every method with the paper's kind of relative deltas against a
+  baseline method (dB for PSNR, % for SSIM and LPIPS, x for time).
+
+Time axis: ``train_s`` (seconds spent in training steps, evaluation excluded) by default, so methods are compared
+on what their training costs, not on how often they were evaluated.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+#: Metrics reported, with the direction that is better.
+METRICS = {"psnr": "higher", "ssim": "higher", "lpips": "lower"}
+METRIC_LABELS = {"psnr": "PSNR (dB)", "ssim": "SSIM", "lpips": "LPIPS"}
+#: Columns of the flat evaluation table, in order.
+EVAL_COLUMNS = ("scene", "method", "seed", "step", "elapsed_s", "train_s", "psnr", "ssim", "lpips", "num_images", "run_dir")
+DEFAULT_TIME_KEY = "train_s"
+
+
+def read_metrics_jsonl(path: str | Path) -> list[dict]:
+    """Every record of a run's ``metrics.jsonl`` (one JSON object a line; blank lines ignored)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"metrics log {path} does not exist (a run folder holds metrics.jsonl once it trained)")
+    records = []
+    with path.open() as handle:
+        for number, line in enumerate(handle, 1):
+            if not line.strip():
+                continue
+            try:
+                records.append(json.loads(line))
+            except json.JSONDecodeError as exc:
+                raise ValueError(f"{path}:{number}: not a JSON object ({exc}); the log may be truncated") from exc
+    return records
+
+
+def _number(value) -> float | None:
+    if value is None:
+        return None
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+def eval_rows(records: Iterable[dict], scene: str, method: str, seed: int, run_dir: str | Path = "") -> list[dict]:
+    """The evaluation records of one run as flat rows (:data:`EVAL_COLUMNS`), sorted by step."""
+    rows = []
+    for record in records:
+        if record.get("kind") != "eval":
+            continue
+        for key in ("step", "elapsed_s", "train_s"):
+            if key not in record:
+                raise KeyError(f"eval record of {method}/{scene}/seed {seed} has no '{key}': {record}")
+        rows.append(
+            {
+                "scene": scene,
+                "method": method,
+                "seed": int(seed),
+                "step": int(record["step"]),
+                "elapsed_s": float(record["elapsed_s"]),
+                "train_s": float(record["train_s"]),
+                "psnr": _number(record.get("psnr")),
+                "ssim": _number(record.get("ssim")),
+                "lpips": _number(record.get("lpips")),
+                "num_images": record.get("num_images"),
+                "run_dir": str(run_dir),
+            }
+        )
+    rows.sort(key=lambda row: row["step"])
+    return rows
+
+
+def write_rows_csv(rows: Sequence[dict], path: str | Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(EVAL_COLUMNS), extrasaction="ignore")
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({key: ("" if row.get(key) is None else row.get(key)) for key in EVAL_COLUMNS})
+    return path
+
+
+def read_rows_csv(path: str | Path) -> list[dict]:
+    """Rows written by :func:`write_rows_csv`, with numbers parsed back (empty cells are None)."""
+    rows = []
+    with Path(path).open(newline="") as handle:
+        for raw in csv.DictReader(handle):
+            row: dict = dict(raw)
+            for key in ("seed", "step"):
+                row[key] = int(row[key])
+            for key in ("elapsed_s", "train_s", "psnr", "ssim", "lpips"):
+                row[key] = float(row[key]) if row[key] not in ("", None) else None
+            row["num_images"] = int(row["num_images"]) if row.get("num_images") not in ("", None) else None
+            rows.append(row)
+    return rows
+
+
+@dataclass
+class Curve:
+    """One method's metric against time on one scene, aggregated over seeds at each evaluated step.
+
+    Arrays are [T] over the steps evaluated by every seed; ``time`` is the mean over seeds of the time key.
+    """
+
+    scene: str
+    method: str
+    metric: str
+    steps: np.ndarray
+    time: np.ndarray
+    mean: np.ndarray
+    std: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+    num_seeds: int
+    seeds: list[int] = field(default_factory=list)
+
+
+def aggregate_curves(rows: Sequence[dict], metric: str, time_key: str = DEFAULT_TIME_KEY) -> list[Curve]:
+    """Per (scene, method): the metric's mean, std and min/max over seeds at each step that every seed evaluated.
+
+    Steps missing from some seed are left out (a mean over a changing set of seeds would jump); rows whose metric is
+    None (e.g. LPIPS unavailable) are ignored, and a (scene, method) with no value at all gives no curve.
+    """
+    if time_key not in ("train_s", "elapsed_s"):
+        raise ValueError(f"time_key must be 'train_s' or 'elapsed_s', got '{time_key}'")
+    groups: dict[tuple[str, str], dict[int, dict[int, dict]]] = {}
+    for row in rows:
+        if row.get(metric) is None:
+            continue
+        groups.setdefault((row["scene"], row["method"]), {}).setdefault(row["seed"], {})[row["step"]] = row
+    curves = []
+    for (scene, method), by_seed in groups.items():
+        seeds = sorted(by_seed)
+        common = sorted(set.intersection(*(set(steps) for steps in by_seed.values())))
+        if not common:
+            continue
+        values = np.array([[by_seed[s][step][metric] for step in common] for s in seeds], dtype=np.float64)
+        times = np.array([[by_seed[s][step][time_key] for step in common] for s in seeds], dtype=np.float64)
+        curves.append(
+            Curve(
+                scene=scene, method=method, metric=metric, steps=np.array(common), time=times.mean(0),
+                mean=values.mean(0), std=values.std(0), low=values.min(0), high=values.max(0),
+                num_seeds=len(seeds), seeds=seeds,
+            )
+        )
+    return curves
+
+
+def _ordered_methods(rows: Sequence[dict], baseline: str | None = None) -> list[str]:
+    methods = list(dict.fromkeys(row["method"] for row in rows))
+    if baseline in methods:
+        methods.remove(baseline)
+        methods.insert(0, baseline)
+    return methods
+
+
+def plot_metric_vs_time(
+    rows: Sequence[dict], metric: str, path: str | Path, time_key: str = DEFAULT_TIME_KEY, baseline: str | None = None
+) -> list[Curve]:
+    """PNG of ``metric`` against seconds: one panel per scene, one curve per method (mean over seeds, min-max band).
+
+    Returns the curves drawn (empty, and no file written, when no run has a value for the metric).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    curves = aggregate_curves(rows, metric, time_key)
+    if not curves:
+        return []
+    scenes = list(dict.fromkeys(c.scene for c in curves))
+    methods = _ordered_methods(rows, baseline)
+    colors = {m: plt.get_cmap("tab10")(i % 10) for i, m in enumerate(methods)}
+    fig, axes = plt.subplots(1, len(scenes), figsize=(5.5 * len(scenes), 4.0), squeeze=False)
+    for ax, scene in zip(axes[0], scenes):
+        for method in methods:
+            for curve in (c for c in curves if c.scene == scene and c.method == method):
+                label = f"{method} (n={curve.num_seeds})"
+                ax.plot(curve.time, curve.mean, "-o", ms=3, color=colors[method], label=label)
+                if curve.num_seeds > 1:
+                    ax.fill_between(curve.time, curve.low, curve.high, color=colors[method], alpha=0.2, lw=0)
+        positive = [c.time[c.time > 0] for c in curves if c.scene == scene]
+        if any(p.size for p in positive) and max(float(p.max()) for p in positive if p.size) / max(
+            min(float(p.min()) for p in positive if p.size), 1e-9
+        ) > 20:
+            ax.set_xscale("log")
+        ax.set_xlabel("training time (s, evaluation excluded)" if time_key == "train_s" else "wall-clock time (s)")
+        ax.set_ylabel(METRIC_LABELS.get(metric, metric))
+        ax.set_title(f"{scene}: {METRIC_LABELS.get(metric, metric)} vs time (mean, min-max over seeds)", fontsize=9)
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return curves
+
+
+def final_rows(rows: Sequence[dict]) -> list[dict]:
+    """Per (scene, method, seed), the evaluation at that run's last evaluated step."""
+    last: dict[tuple, dict] = {}
+    for row in rows:
+        key = (row["scene"], row["method"], row["seed"])
+        if key not in last or row["step"] > last[key]["step"]:
+            last[key] = row
+    return list(last.values())
+
+
+def summarize_final(rows: Sequence[dict], baseline: str | None = None) -> list[dict]:
+    """Per (scene, method): mean and std over seeds of the final metrics and training time, with deltas vs baseline.
+
+    Deltas (present when the baseline ran on the scene): ``psnr_delta_db`` (difference of means), ``ssim_delta_pct``
+    and ``lpips_delta_pct`` (relative change of the means, %), ``time_ratio`` (mean train_s / baseline's).
+    """
+    finals = final_rows(rows)
+    scenes = list(dict.fromkeys(row["scene"] for row in finals))
+    methods = _ordered_methods(finals, baseline)
+    summary = []
+    for scene in scenes:
+        by_method = {}
+        for method in methods:
+            group = [r for r in finals if r["scene"] == scene and r["method"] == method]
+            if not group:
+                continue
+            entry = {"scene": scene, "method": method, "num_seeds": len(group), "step": max(r["step"] for r in group)}
+            for key in ("psnr", "ssim", "lpips", "train_s", "elapsed_s"):
+                values = [r[key] for r in group if r.get(key) is not None]
+                entry[key] = float(np.mean(values)) if values else None
+                entry[f"{key}_std"] = float(np.std(values)) if values else None
+            by_method[method] = entry
+        base = by_method.get(baseline) if baseline else None
+        for entry in by_method.values():
+            if base is not None:
+                entry["psnr_delta_db"] = _diff(entry["psnr"], base["psnr"])
+                entry["ssim_delta_pct"] = _rel_pct(entry["ssim"], base["ssim"])
+                entry["lpips_delta_pct"] = _rel_pct(entry["lpips"], base["lpips"])
+                entry["time_ratio"] = (entry["train_s"] / base["train_s"]) if entry["train_s"] and base["train_s"] else None
+            summary.append(entry)
+    return summary
+
+
+def _diff(a: float | None, b: float | None) -> float | None:
+    return None if a is None or b is None else a - b
+
+
+def _rel_pct(a: float | None, b: float | None) -> float | None:
+    return None if a is None or b is None or b == 0 else 100.0 * (a - b) / abs(b)
+
+
+def _fmt(value: float | None, std: float | None, digits: int) -> str:
+    if value is None:
+        return "n/a"
+    if std is None:
+        return f"{value:.{digits}f}"
+    return f"{value:.{digits}f} ± {std:.{digits}f}"
+
+
+def _signed(value: float | None, digits: int, unit: str) -> str:
+    return "" if value is None else f" ({value:+.{digits}f}{unit})"
+
+
+def markdown_table(summary: Sequence[dict], baseline: str | None = None, lpips_note: str | None = None) -> str:
+    """Markdown table of the final metrics (mean ± std over seeds), deltas vs ``baseline`` in parentheses."""
+    lines = [
+        "| scene | method | seeds | step | PSNR (dB) ↑ | SSIM ↑ | LPIPS ↓ | train time (s) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for e in summary:
+        is_base = e["method"] == baseline
+        psnr = _fmt(e["psnr"], e["psnr_std"], 2) + ("" if is_base else _signed(e.get("psnr_delta_db"), 2, " dB"))
+        ssim = _fmt(e["ssim"], e["ssim_std"], 4) + ("" if is_base else _signed(e.get("ssim_delta_pct"), 2, " %"))
+        lpips = _fmt(e["lpips"], e["lpips_std"], 4) + ("" if is_base else _signed(e.get("lpips_delta_pct"), 2, " %"))
+        time = _fmt(e["train_s"], e["train_s_std"], 1)
+        if not is_base and e.get("time_ratio") is not None:
+            time += f" ({e['time_ratio']:.2f}x)"
+        name = f"{e['method']} (baseline)" if is_base else e["method"]
+        lines.append(f"| {e['scene']} | {name} | {e['num_seeds']} | {e['step']} | {psnr} | {ssim} | {lpips} | {time} |")
+    notes = ["", "Mean ± std over seeds of the last evaluation on the test split."]
+    if baseline:
+        notes.append(
+            f"In parentheses: difference to `{baseline}` (PSNR in dB; SSIM and LPIPS relative, in %; time as a ratio)."
+        )
+    if lpips_note:
+        notes.append(f"LPIPS: {lpips_note}")
+    return "\n".join(lines + notes) + "\n"
+
+
+def paired_deltas(rows: Sequence[dict], baseline: str) -> list[dict]:
+    """Per (scene, method), the final-metric differences to ``baseline`` run with the same seed.
+
+    Runs that share a seed share the initial Gaussians and the image order, so pairing removes the seed-to-seed
+    variation that dominates short runs. Returns ``seeds``, ``psnr_db`` (per-seed differences, dB), ``ssim_pct``
+    and ``lpips_pct`` (relative, %; None where unavailable), with their ``_mean``.
+    """
+    finals = {(r["scene"], r["method"], r["seed"]): r for r in final_rows(rows)}
+    out = []
+    for scene, method in dict.fromkeys((k[0], k[1]) for k in finals):
+        if method == baseline:
+            continue
+        seeds = sorted(k[2] for k in finals if k[:2] == (scene, method) and (scene, baseline, k[2]) in finals)
+        if not seeds:
+            continue
+        entry: dict = {"scene": scene, "method": method, "seeds": seeds}
+        for key, delta in (("psnr_db", _diff), ("ssim_pct", _rel_pct), ("lpips_pct", _rel_pct)):
+            metric = key.split("_")[0]
+            values = [delta(finals[(scene, method, s)][metric], finals[(scene, baseline, s)][metric]) for s in seeds]
+            entry[key] = values
+            present = [v for v in values if v is not None]
+            entry[f"{key}_mean"] = float(np.mean(present)) if present else None
+        out.append(entry)
+    return out
+
+
+def markdown_paired_table(paired: Sequence[dict], baseline: str) -> str:
+    """Markdown of :func:`paired_deltas`: per-seed differences to the baseline and their mean."""
+    if not paired:
+        return ""
+
+    def cells(values: list, mean: float | None, digits: int) -> str:
+        if mean is None:
+            return "n/a | n/a"
+        return " / ".join(f"{v:+.{digits}f}" for v in values) + f" | {mean:+.{digits}f}"
+
+    lines = [
+        f"Per-seed differences to `{baseline}` at the same seed (final evaluation):",
+        "",
+        "| scene | method | seeds | ΔPSNR per seed (dB) | mean | ΔSSIM per seed (%) | mean |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for e in paired:
+        seeds = " / ".join(str(s) for s in e["seeds"])
+        lines.append(
+            f"| {e['scene']} | {e['method']} | {seeds} | {cells(e['psnr_db'], e['psnr_db_mean'], 2)} | "
+            f"{cells(e['ssim_pct'], e['ssim_pct_mean'], 2)} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def write_report(
+    rows: Sequence[dict],
+    out_dir: str | Path,
+    baseline: str | None = None,
+    time_key: str = DEFAULT_TIME_KEY,
+    lpips_note: str | None = None,
+) -> dict[str, Path]:
+    """Everything :mod:`report` makes, under ``out_dir``: ``evals.csv``, ``evals.json``, ``summary.json``,
+    ``results.md`` and one ``<metric>_vs_time.png`` per metric that has values. Returns the paths by name."""
+    if not rows:
+        raise ValueError("write_report: no evaluation rows (did the runs evaluate? set eval_at_steps)")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = {"csv": write_rows_csv(rows, out_dir / "evals.csv")}
+    paths["json"] = out_dir / "evals.json"
+    paths["json"].write_text(json.dumps(list(rows), indent=1))
+    summary = summarize_final(rows, baseline)
+    paths["summary"] = out_dir / "summary.json"
+    paths["summary"].write_text(json.dumps(summary, indent=1))
+    paths["table"] = out_dir / "results.md"
+    table = markdown_table(summary, baseline, lpips_note)
+    if baseline:
+        paired = markdown_paired_table(paired_deltas(rows, baseline), baseline)
+        table += ("\n" + paired) if paired else ""
+    paths["table"].write_text(table)
+    for metric in METRICS:
+        png = out_dir / f"{metric}_vs_time.png"
+        if plot_metric_vs_time(rows, metric, png, time_key, baseline):
+            paths[f"plot_{metric}"] = png
+    return paths

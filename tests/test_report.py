@@ -1,0 +1,165 @@
+"""Report aggregation: numbers against numpy, PNGs that decode, the markdown table's deltas, and (with the trainer)
+a real 2-method bench run with one curve per method and monotone times."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from kc_splatfacto.engine import report
+
+
+def _fake_runs(tmp_path):
+    """metrics.jsonl files of 2 methods x 3 seeds, written as the trainer does (train and eval records mixed)."""
+    rng = np.random.default_rng(0)
+    rows, truth = [], {}
+    for method, offset, speed in (("splatfacto", 20.0, 1.0), ("kc-splatfacto", 20.5, 1.3)):
+        for seed in range(3):
+            records, t = [], 0.0
+            for step in (1, 10, 100, 300):
+                t += speed * step * 0.01 + rng.uniform(0, 0.1)
+                records.append({"kind": "train", "step": step, "elapsed_s": t, "train_s": t, "main_loss": 0.1})
+                psnr = offset + np.log10(step) + rng.normal(0, 0.2)
+                ssim = 0.5 + 0.05 * np.log10(step) + rng.normal(0, 0.01)
+                records.append({"kind": "eval", "step": step, "elapsed_s": t + 1.0, "train_s": t, "psnr": psnr,
+                                "ssim": ssim, "lpips": None, "lpips_unavailable": "no weights", "num_images": 4})
+                truth[(method, seed, step)] = (psnr, ssim, t)
+            path = tmp_path / method / str(seed) / "metrics.jsonl"
+            path.parent.mkdir(parents=True)
+            path.write_text("\n".join(json.dumps(r) for r in records) + "\n")
+            rows += report.eval_rows(report.read_metrics_jsonl(path), "scene", method, seed, path.parent)
+    return rows, truth
+
+
+def test_aggregation_matches_numpy(tmp_path):
+    rows, truth = _fake_runs(tmp_path)
+    assert len(rows) == 2 * 3 * 4 and all(r["lpips"] is None for r in rows)
+    curves = {c.method: c for c in report.aggregate_curves(rows, "psnr")}
+    assert set(curves) == {"splatfacto", "kc-splatfacto"}
+    for method, curve in curves.items():
+        assert curve.steps.tolist() == [1, 10, 100, 300] and curve.num_seeds == 3
+        values = np.array([[truth[(method, s, step)][0] for step in curve.steps] for s in range(3)])
+        times = np.array([[truth[(method, s, step)][2] for step in curve.steps] for s in range(3)])
+        np.testing.assert_allclose(curve.mean, values.mean(0), rtol=1e-12)
+        np.testing.assert_allclose(curve.std, values.std(0), rtol=1e-12)
+        np.testing.assert_allclose(curve.low, values.min(0), rtol=1e-12)
+        np.testing.assert_allclose(curve.time, times.mean(0), rtol=1e-12)
+    assert report.aggregate_curves(rows, "lpips") == []
+
+
+def test_steps_missing_in_a_seed_are_left_out(tmp_path):
+    rows, _ = _fake_runs(tmp_path)
+    rows = [r for r in rows if not (r["method"] == "splatfacto" and r["seed"] == 1 and r["step"] == 10)]
+    curve = next(c for c in report.aggregate_curves(rows, "ssim") if c.method == "splatfacto")
+    assert curve.steps.tolist() == [1, 100, 300]
+
+
+def test_summary_and_markdown_deltas(tmp_path):
+    rows, truth = _fake_runs(tmp_path)
+    summary = {e["method"]: e for e in report.summarize_final(rows, baseline="splatfacto")}
+    base_psnr = np.mean([truth[("splatfacto", s, 300)][0] for s in range(3)])
+    kc_psnr = np.mean([truth[("kc-splatfacto", s, 300)][0] for s in range(3)])
+    base_ssim = np.mean([truth[("splatfacto", s, 300)][1] for s in range(3)])
+    kc_ssim = np.mean([truth[("kc-splatfacto", s, 300)][1] for s in range(3)])
+    assert summary["kc-splatfacto"]["psnr_delta_db"] == pytest.approx(kc_psnr - base_psnr, rel=1e-12)
+    assert summary["kc-splatfacto"]["ssim_delta_pct"] == pytest.approx(100 * (kc_ssim - base_ssim) / base_ssim, rel=1e-9)
+    base_t = np.mean([truth[("splatfacto", s, 300)][2] for s in range(3)])
+    kc_t = np.mean([truth[("kc-splatfacto", s, 300)][2] for s in range(3)])
+    assert summary["kc-splatfacto"]["time_ratio"] == pytest.approx(kc_t / base_t, rel=1e-9)
+    assert summary["kc-splatfacto"]["lpips"] is None and summary["kc-splatfacto"]["lpips_delta_pct"] is None
+    table = report.markdown_table(list(summary.values()), "splatfacto", lpips_note="unavailable offline")
+    data_lines = [line for line in table.splitlines() if line.startswith("| scene |") and "splatfacto" in line]
+    assert len(data_lines) == 2  # one line per method, baseline first
+    assert "| splatfacto (baseline) |" in data_lines[0]
+    kc_line = next(line for line in table.splitlines() if "| kc-splatfacto |" in line)
+    assert f"{kc_psnr - base_psnr:+.2f} dB" in kc_line and "n/a" in kc_line
+    assert "splatfacto (baseline)" in table and "unavailable offline" in table
+
+
+def test_write_report_files_decode(tmp_path):
+    rows, _ = _fake_runs(tmp_path)
+    paths = report.write_report(rows, tmp_path / "out", baseline="splatfacto", lpips_note="n/a")
+    assert "plot_lpips" not in paths  # no values: no empty plot
+    for key in ("plot_psnr", "plot_ssim"):
+        image = cv2.imread(str(paths[key]), cv2.IMREAD_COLOR)
+        assert image is not None and image.shape[0] > 100 and image.shape[1] > 100 and image.std() > 0
+    back = report.read_rows_csv(paths["csv"])
+    assert len(back) == len(rows)
+    for a, b in zip(back, rows):
+        assert a["method"] == b["method"] and a["step"] == b["step"]
+        assert a["psnr"] == pytest.approx(b["psnr"], rel=1e-12) and a["lpips"] is None
+    assert json.loads(paths["json"].read_text())[0]["scene"] == "scene"
+
+
+def test_bad_logs(tmp_path):
+    with pytest.raises(FileNotFoundError, match="metrics.jsonl"):
+        report.read_metrics_jsonl(tmp_path / "metrics.jsonl")
+    (tmp_path / "metrics.jsonl").write_text('{"kind": "eval", "step": 1}\n{"kind": "ev')
+    with pytest.raises(ValueError, match="metrics.jsonl:2"):
+        report.read_metrics_jsonl(tmp_path / "metrics.jsonl")
+    with pytest.raises(KeyError, match="elapsed_s"):
+        report.eval_rows([{"kind": "eval", "step": 1}], "s", "m", 0)
+    with pytest.raises(ValueError, match="no evaluation rows"):
+        report.write_report([], tmp_path / "out")
+
+
+def test_bench_two_methods_one_seed_demo(tmp_path):
+    """kc-bench end to end on the demo scene: one curve per method, monotone times, decodable plots."""
+    from kc_splatfacto.cli import bench
+
+    out = tmp_path / "bench"
+    argv = ["--data", "demo", "--methods", "splatfacto", "kc-splatfacto", "--seeds", "0",
+            "--max-num-iterations", "12", "--num-evals", "3", "--output-dir", str(out)]
+    assert bench.entrypoint(argv) == 0
+    rows = report.read_rows_csv(out / "evals.csv")
+    assert {r["method"] for r in rows} == {"splatfacto", "kc-splatfacto"}
+    for metric in ("psnr", "ssim"):
+        curves = report.aggregate_curves(rows, metric)
+        assert sorted(c.method for c in curves) == ["kc-splatfacto", "splatfacto"]
+        for curve in curves:
+            assert curve.num_seeds == 1 and curve.steps.tolist() == list(bench.log_spaced_steps(12, 3))
+            assert np.all(np.diff(curve.time) > 0), f"{curve.method}: training time not increasing {curve.time}"
+            assert np.isfinite(curve.mean).all()
+        image = cv2.imread(str(out / f"{metric}_vs_time.png"), cv2.IMREAD_COLOR)
+        assert image is not None and image.std() > 0
+    for method in ("splatfacto", "kc-splatfacto"):
+        mine = sorted((r for r in rows if r["method"] == method), key=lambda r: r["step"])
+        assert np.all(np.diff([r["elapsed_s"] for r in mine]) > 0)
+        assert all(r["elapsed_s"] >= r["train_s"] for r in mine)  # wall clock includes the evaluations
+    table = (out / "results.md").read_text()
+    assert "splatfacto (baseline)" in table and "| kc-splatfacto |" in table
+    assert (out / "command.txt").read_text().startswith("kc-bench --data demo")
+    assert not (out / "lpips_vs_time.png").exists()
+    gap = cv2.imread(str(out / "kurtosis_gap_demo.png"), cv2.IMREAD_COLOR)  # kurtosis is logged at step 10
+    assert gap is not None and gap.std() > 0
+
+
+def test_log_spaced_steps():
+    from kc_splatfacto.cli import bench
+
+    steps = bench.log_spaced_steps(1000, 7)
+    assert steps[0] == 1 and steps[-1] == 1000 and list(steps) == sorted(set(steps))
+    ratios = np.diff(np.log(steps))
+    assert ratios.max() / ratios.min() < 1.2  # geometric spacing
+    assert bench.log_spaced_steps(3, 10) == (1, 2, 3)
+    with pytest.raises(ValueError):
+        bench.log_spaced_steps(0, 3)
+
+
+def test_paired_deltas_match_numpy(tmp_path):
+    rows, truth = _fake_runs(tmp_path)
+    (entry,) = report.paired_deltas(rows, "splatfacto")
+    assert entry["method"] == "kc-splatfacto" and entry["seeds"] == [0, 1, 2]
+    psnr = [truth[("kc-splatfacto", s, 300)][0] - truth[("splatfacto", s, 300)][0] for s in range(3)]
+    ssim = [100 * (truth[("kc-splatfacto", s, 300)][1] / truth[("splatfacto", s, 300)][1] - 1) for s in range(3)]
+    np.testing.assert_allclose(entry["psnr_db"], psnr, rtol=1e-12)
+    np.testing.assert_allclose(entry["ssim_pct"], ssim, rtol=1e-9)
+    assert entry["psnr_db_mean"] == pytest.approx(np.mean(psnr), rel=1e-12)
+    assert entry["lpips_pct_mean"] is None
+    table = report.markdown_paired_table([entry], "splatfacto")
+    assert f"{np.mean(psnr):+.2f}" in table and f"{psnr[1]:+.2f}" in table
+    paths = report.write_report(rows, tmp_path / "out", baseline="splatfacto")
+    assert "Per-seed differences" in paths["table"].read_text()
