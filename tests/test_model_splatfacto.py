@@ -109,6 +109,31 @@ def test_metrics_and_logging_kurtosis(demo_train):
     assert all(np.isfinite(logged["kurtosis_gt"]))
 
 
+def test_logged_gt_kurtosis_reads_the_cached_target(demo_train, monkeypatch):
+    """Once a training image's wavelet target is cached, logging its GT kurtosis runs no DWT of the GT, and the value
+    equals scipy's kurtosis of PyWavelets' subbands of that image (channel-averaged)."""
+    pywt = pytest.importorskip("pywt")
+    from scipy.stats import kurtosis as scipy_kurtosis
+
+    import kc_splatfacto.losses.frequency as frequency
+
+    model, dataset = make_model(demo_train, wavelet_weight=1e-3, kc_weight=1e-5, cbc_weight=1e-2)
+    out = model.get_outputs(dataset.cameras[2])
+    batch = {"image": dataset.image_uint8(2), "image_idx": 2}
+    model.get_loss_dict(out, batch)  # caches the target
+    calls = []
+    real_dwt2 = frequency.dwt2
+    monkeypatch.setattr(frequency, "dwt2", lambda *a, **k: calls.append(a[0].shape) or real_dwt2(*a, **k))
+    logged = model.get_metrics_dict(out, batch, with_kurtosis=True)
+    assert len(calls) == 1  # the render's DWT only
+    gt = dataset.image_uint8(2).double().numpy() / 255
+    expected = np.zeros(9)
+    for c in range(3):
+        bands = pywt.wavedec2(gt[..., c], "db3", mode="symmetric", level=3)[1:][::-1]  # finest first
+        expected += [scipy_kurtosis(b.ravel(), fisher=True, bias=True) for level in bands for b in level]
+    np.testing.assert_allclose(logged["kurtosis_gt"], expected / 3, rtol=1e-3, atol=1e-3)
+
+
 def test_evaluate_split_matches_numpy_psnr_and_kornia_ssim(demo_train):
     from kornia.metrics import ssim as kornia_ssim
 

@@ -390,15 +390,25 @@ class SplatfactoModel(torch.nn.Module):
         }
         if with_kurtosis:
             metrics["kurtosis_render"] = self.band_kurtosis(pred_img)
-            metrics["kurtosis_gt"] = self.band_kurtosis(gt_img)
+            metrics["kurtosis_gt"] = self.band_kurtosis(self._cached_wavelet_target(batch.get("image_idx")) or gt_img)
         return metrics
 
-    def band_kurtosis(self, image: torch.Tensor) -> list[float]:
-        """Excess kurtosis of every detail subband of ``image`` [H, W, 3], channel-averaged: 3 x levels values."""
+    def _cached_wavelet_target(self, image_idx: int | None) -> Any:
+        """The training image's cached WaveletTarget at the current resolution, or None (never computes one)."""
+        if image_idx is None or self.frequency_loss is None:
+            return None
+        return self._wavelet_targets.get((int(image_idx), self.get_downscale_factor()))
+
+    def band_kurtosis(self, image: Any) -> list[float]:
+        """Excess kurtosis of every detail subband, channel-averaged: 3 x levels values.
+
+        ``image`` is an [H, W, 3] image or a cached WaveletTarget (whose kurtosis is read, not recomputed).
+        """
         from kc_splatfacto.losses.frequency import band_kurtosis_for_logging
 
-        return band_kurtosis_for_logging(image.float(), self.config.wave, self.config.wavelet_levels,
-                                         self.config.wavelet_mode)
+        if isinstance(image, torch.Tensor):
+            image = image.float()
+        return band_kurtosis_for_logging(image, self.config.wave, self.config.wavelet_levels, self.config.wavelet_mode)
 
     # ----------------------------------------------------------------------------------------------- density control
     def step_post_backward(self, optimizers: dict[str, torch.optim.Optimizer], step: int) -> dict[str, int]:
