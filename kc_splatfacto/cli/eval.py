@@ -22,6 +22,8 @@ import sys
 import time
 from pathlib import Path
 
+from kc_splatfacto.atomic import atomic_write_text
+
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 SSIM_CONVENTION = (
@@ -102,11 +104,7 @@ def run_eval(load_config: Path, output_path: Path | None = None, step: int | Non
         "psnr_convention": PSNR_CONVENTION,
     }
     if output_path is not None:
-        output_path = Path(output_path)
-        output_path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = output_path.with_name(output_path.name + ".tmp")
-        tmp.write_text(json.dumps(payload, indent=2))
-        os.replace(tmp, output_path)
+        atomic_write_text(output_path, json.dumps(payload, indent=2))
     return payload
 
 

@@ -15,7 +15,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,6 +23,7 @@ import numpy as np
 import torch
 
 from kc_splatfacto.data.outputs import Cameras, DataparserOutputs
+from kc_splatfacto.atomic import atomic_write_text
 
 SPLITS = ("train", "val", "test")
 ORIENTATION_METHODS = ("up", "none")
@@ -316,19 +316,6 @@ def read_dataparser_transforms(path: str | Path) -> PoseNormalization:
     if transform.shape != (3, 4):
         raise DataParserError(f"{path}: 'transform' must be 3x4, got shape {transform.shape}")
     return PoseNormalization(transform=transform, scale=scale)
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temp file in the same folder and a rename (never a half-written file)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as handle:
-            handle.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def read_split_list(path: Path) -> list[str]:

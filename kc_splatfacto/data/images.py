@@ -10,11 +10,11 @@ from __future__ import annotations
 import hashlib
 import os
 import stat
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from kc_splatfacto.atomic import atomic_write_bytes
 from kc_splatfacto.data.base import DataParserError, default_cache_dir
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".exr")
@@ -96,14 +96,7 @@ def write_image_atomic(path: Path, image: np.ndarray) -> None:
     ok, encoded = cv2.imencode(suffix, bgr, params)
     if not ok:
         raise DataParserError(f"OpenCV could not encode {path} (suffix {suffix})")
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(encoded.tobytes())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write_bytes(path, encoded.tobytes())
 
 
 def folder_is_writable(folder: Path) -> bool:

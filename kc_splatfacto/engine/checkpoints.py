@@ -3,12 +3,13 @@ or Ctrl-C mid-write never leaves a truncated checkpoint under the final name."""
 
 from __future__ import annotations
 
-import os
 import re
 from pathlib import Path
 from typing import Any
 
 import torch
+
+from kc_splatfacto.atomic import atomic_write
 
 CHECKPOINT_DIR = "nerfstudio_models"
 CHECKPOINT_PATTERN = re.compile(r"^step-(\d{9})\.ckpt$")
@@ -23,13 +24,7 @@ def save_checkpoint(directory: Path, step: int, payload: dict[str, Any], only_la
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / checkpoint_name(step)
-    tmp = directory / f".{path.name}.tmp-{os.getpid()}"
-    try:
-        torch.save(payload, tmp)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    atomic_write(path, lambda tmp: torch.save(payload, tmp))
     if only_latest:
         for other in list_checkpoints(directory):
             if other != path:

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
-import os
 import random
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,6 +20,7 @@ import yaml
 
 from kc_splatfacto.engine.optimizers import OptimizersConfig
 from kc_splatfacto.model.splatfacto import SplatfactoModelConfig
+from kc_splatfacto.atomic import atomic_write_text
 
 TIMESTAMP_FORMAT = "%Y-%m-%d_%H%M%S"
 
@@ -173,11 +173,7 @@ class TrainerConfig:
 
 def save_config(config: TrainerConfig, path: Path) -> None:
     """Write the full config as YAML, atomically (temp file + rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(yaml.dump(config, Dumper=yaml.Dumper, sort_keys=False))
-    os.replace(tmp, path)
+    atomic_write_text(path, yaml.dump(config, Dumper=yaml.Dumper, sort_keys=False))
 
 
 def load_config(path: Path | str) -> TrainerConfig:

@@ -3,13 +3,13 @@ epoch in a shuffled order, images kept as uint8 and made float by the model per 
 
 from __future__ import annotations
 
-import json
-import os
 import random
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import torch
+
+from kc_splatfacto.data.base import write_dataparser_transforms
 
 if TYPE_CHECKING:
     from kc_splatfacto.engine.config import DataManagerConfig
@@ -60,15 +60,7 @@ class DataManager:
 
     def save_dataparser_transform(self, path: Path) -> None:
         """``dataparser_transforms.json`` as nerfstudio writes it: ``transform`` [3, 4] and ``scale``."""
-        outputs = self.train_outputs
-        data = {
-            "transform": torch.as_tensor(outputs.dataparser_transform).reshape(-1, 4)[:3].tolist(),
-            "scale": float(outputs.dataparser_scale),
-        }
-        path = Path(path)
-        tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-        tmp.write_text(json.dumps(data, indent=2))
-        os.replace(tmp, path)
+        write_dataparser_transforms(path, self.train_outputs)
 
 
 def _as_random_state(state: Any) -> tuple:

@@ -16,14 +16,14 @@ returned so the caller can report it.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping
 
 import numpy as np
 import torch
+
+from kc_splatfacto.atomic import atomic_write_bytes
 
 #: The parameter names of ``model.gauss_params`` that a PLY file carries.
 PLY_PARAM_NAMES = ("means", "scales", "quats", "opacities", "features_dc", "features_rest")
@@ -124,15 +124,7 @@ def export_ply(path: str | Path, params: Mapping[str, torch.Tensor | np.ndarray]
     header += [f"property float {name}" for name in names]
     header += ["end_header"]
     payload = ("\n".join(header) + "\n").encode("ascii") + structured.tobytes()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(payload)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write_bytes(path, payload)
     return PlyExportResult(path=path, num_written=int(rows.shape[0]), num_dropped=num_dropped, sh_rest_coeffs=k)
 
 
