@@ -711,3 +711,294 @@ def rasterize_bwd_lanes(
                 for jj in range(LANES // 4):
                     pair_sums[jj] = pair_sums[jj] + pair_sums[jj + LANES // 4]
                 isect_grads[m, q] = (pair_sums[0] + pair_sums[2]) + (pair_sums[1] + pair_sums[3])
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# 4x4-block kernels for 16 px tiles: a tile is 16 blocks of 4x4 pixels and the 16 pixels of one block are the 16
+# branch-free lanes. A Gaussian visits only the blocks that its ellipse's row spans touch (the union of the spans of
+# the block's 4 rows), so a small Gaussian wastes far fewer lanes than with whole 16 px rows. State is [block, lane]:
+# block ``b = (r // 4) * 4 + c // 4``, lane ``l = (r % 4) * 4 + c % 4`` for the pixel at tile row r, column c.
+# Per-pixel arithmetic and tests are exactly those of the row kernels above.
+# ------------------------------------------------------------------------------------------------------------------
+
+BLOCK = 4
+
+
+@njit(inline="always")
+def _block_cols(bounded, k_cut, k_det, k_b, gx, gy, pixel_offset, i_a, i_b, j_first, j_end):
+    """Union over rows ``[i_a, i_b)`` of their row spans within ``[j_first, j_end)``: (first, end), empty if
+    end <= first."""
+    cf = j_end
+    ce = j_first
+    for i in range(i_a, i_b):
+        dy = gy - (_F32(i) + pixel_offset)
+        rf, re = _row_range(bounded, k_cut, k_det, k_b, gx, dy, pixel_offset, j_first, j_end)
+        if re > rf:
+            cf = min(cf, rf)
+            ce = max(ce, re)
+    return cf, ce
+
+
+@njit(inline="always")
+def _block_tables(x0, y0, pixel_offset):
+    """Pixel-centre coordinates per (block column, lane) and (block row, lane), float32 exactly as the row kernels."""
+    px = np.empty((BLOCK, LANES), dtype=np.float32)
+    py = np.empty((BLOCK, LANES), dtype=np.float32)
+    for q in range(BLOCK):
+        for lane in range(LANES):
+            px[q, lane] = _F32(x0 + BLOCK * q + (lane % BLOCK)) + pixel_offset
+            py[q, lane] = _F32(y0 + BLOCK * q + (lane // BLOCK)) + pixel_offset
+    return px, py
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def rasterize_fwd_blocks(
+    packed,
+    tile_offsets,
+    backgrounds,
+    n_cameras,
+    image_height,
+    image_width,
+    tile_height,
+    tile_width,
+    pixel_offset,
+    max_alpha,
+    alpha_threshold,
+    transmittance_threshold,
+    render_colors,
+    T_final,
+    last_ids,
+    n_contrib,
+):
+    """``rasterize_fwd`` for 16 px tiles with 4x4-pixel blocks as the 16 lanes (same outputs)."""
+    n_isects = packed.shape[0]
+    n_channels = packed.shape[1] - PACK_HEAD
+    tiles_per_image = tile_height * tile_width
+    n_tiles = n_cameras * tiles_per_image
+    half = _F32(0.5)
+    one = _F32(1.0)
+    zero = _F32(0.0)
+    for tile in prange(n_tiles):
+        cam, x0, y0, x1, y1 = _tile_geometry(tile, tiles_per_image, tile_width, image_width, image_height)
+        start = tile_offsets[tile]
+        end = tile_offsets[tile + 1] if tile + 1 < n_tiles else n_isects
+        T = np.ones((LANES, LANES), dtype=np.float32)
+        acc = np.zeros((n_channels, LANES, LANES), dtype=np.float32)
+        last = np.full((LANES, LANES), -1, dtype=np.int32)
+        count = np.zeros((LANES, LANES), dtype=np.float32)
+        # 1 while the pixel composites; 0 once done (and for lanes outside the image)
+        live = np.zeros((LANES, LANES), dtype=np.float32)
+        for r in range(y1 - y0):
+            for c in range(x1 - x0):
+                live[(r // BLOCK) * BLOCK + c // BLOCK, (r % BLOCK) * BLOCK + c % BLOCK] = one
+        px, py = _block_tables(x0, y0, pixel_offset)
+        vis = np.empty(LANES, dtype=np.float32)
+        for m in range(start, end):
+            if (m - start) % LANES == LANES - 1:
+                n_live = 0
+                for b in range(LANES):
+                    for lane in range(LANES):
+                        n_live += 1 if live[b, lane] > zero else 0
+                if n_live == 0:
+                    break
+            gx = packed[m, 0]
+            gy = packed[m, 1]
+            ca = packed[m, 2]
+            cb = packed[m, 3]
+            cc = packed[m, 4]
+            op = packed[m, 5]
+            sigma_cut = packed[m, 8]
+            j_first, j_end = _pixel_range(gx, packed[m, 6], pixel_offset, x0, x1)
+            if j_end <= j_first:
+                continue
+            i_first, i_end = _pixel_range(gy, packed[m, 7], pixel_offset, y0, y1)
+            if i_end <= i_first:
+                continue
+            bounded, k_cut, k_det, k_b = _ellipse_rows(ca, cb, cc, sigma_cut)
+            mi = np.int32(m)
+            for br in range((i_first - y0) // BLOCK, (i_end - 1 - y0) // BLOCK + 1):
+                i_a = max(i_first, y0 + BLOCK * br)
+                i_b = min(i_end, y0 + BLOCK * br + BLOCK)
+                cf, ce = _block_cols(bounded, k_cut, k_det, k_b, gx, gy, pixel_offset, i_a, i_b, j_first, j_end)
+                if ce <= cf:
+                    continue
+                for bc in range((cf - x0) // BLOCK, (ce - 1 - x0) // BLOCK + 1):
+                    b = br * BLOCK + bc
+                    for lane in range(LANES):
+                        dx = gx - px[bc, lane]
+                        dy = gy - py[br, lane]
+                        sigma = half * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                        alpha = min(max_alpha, op * exp_neg(sigma))
+                        t = T[b, lane]
+                        next_t = t * (one - alpha)
+                        ok = ((sigma >= zero) & (sigma <= sigma_cut) & (alpha >= alpha_threshold)
+                              & (live[b, lane] > zero))
+                        use = ok & (next_t > transmittance_threshold)
+                        stop = ok & (next_t <= transmittance_threshold)
+                        vis[lane] = alpha * t if use else zero
+                        T[b, lane] = next_t if use else t
+                        last[b, lane] = mi if use else last[b, lane]
+                        count[b, lane] += one if use else zero
+                        live[b, lane] = zero if stop else live[b, lane]
+                    for k in range(n_channels):
+                        ck = packed[m, PACK_HEAD + k]
+                        for lane in range(LANES):
+                            acc[k, b, lane] += ck * vis[lane]
+        for i in range(y0, y1):
+            for j in range(x0, x1):
+                r = i - y0
+                c = j - x0
+                b = (r // BLOCK) * BLOCK + c // BLOCK
+                lane = (r % BLOCK) * BLOCK + c % BLOCK
+                t = T[b, lane]
+                T_final[cam, i, j] = t
+                last_ids[cam, i, j] = last[b, lane]
+                n_contrib[cam, i, j] = np.int32(count[b, lane])
+                for k in range(n_channels):
+                    render_colors[cam, i, j, k] = acc[k, b, lane] + t * backgrounds[cam, k]
+
+
+@njit(parallel=True, cache=True, fastmath=False, error_model="numpy")
+def rasterize_bwd_blocks(
+    packed,
+    tile_offsets,
+    backgrounds,
+    T_final,
+    last_ids,
+    v_render_colors,
+    v_render_alphas,
+    n_cameras,
+    image_height,
+    image_width,
+    tile_height,
+    tile_width,
+    pixel_offset,
+    max_alpha,
+    alpha_threshold,
+    isect_grads,
+):
+    """``rasterize_bwd`` for 16 px tiles with 4x4-pixel blocks as the 16 lanes (same outputs).
+
+    Per Gaussian, each gradient is summed per lane over the visited blocks (in block order), then over the 16 lanes
+    in float64 by a fixed pairwise tree: deterministic whatever the thread count.
+    """
+    n_isects = packed.shape[0]
+    n_channels = packed.shape[1] - PACK_HEAD
+    tiles_per_image = tile_height * tile_width
+    n_tiles = n_cameras * tiles_per_image
+    half = _F32(0.5)
+    one = _F32(1.0)
+    zero = _F32(0.0)
+    for tile in prange(n_tiles):
+        cam, x0, y0, x1, y1 = _tile_geometry(tile, tiles_per_image, tile_width, image_width, image_height)
+        start = tile_offsets[tile]
+        end = tile_offsets[tile + 1] if tile + 1 < n_tiles else n_isects
+        if end <= start:
+            continue
+        T = np.ones((LANES, LANES), dtype=np.float32)
+        last = np.full((LANES, LANES), -1, dtype=np.int32)
+        v_c = np.zeros((n_channels, LANES, LANES), dtype=np.float32)
+        alpha_term = np.zeros((LANES, LANES), dtype=np.float32)
+        buffer = np.zeros((n_channels, LANES, LANES), dtype=np.float32)
+        tile_last = -1
+        for i in range(y0, y1):
+            for j in range(x0, x1):
+                r = i - y0
+                c = j - x0
+                b = (r // BLOCK) * BLOCK + c // BLOCK
+                lane = (r % BLOCK) * BLOCK + c % BLOCK
+                t = T_final[cam, i, j]
+                T[b, lane] = t
+                lp = last_ids[cam, i, j]
+                last[b, lane] = lp
+                if lp > tile_last:
+                    tile_last = lp
+                bg_dot = zero
+                for k in range(n_channels):
+                    v = v_render_colors[cam, i, j, k]
+                    v_c[k, b, lane] = v
+                    bg_dot += backgrounds[cam, k] * v
+                # d(out)/d(alpha) terms that do not depend on the Gaussian: T_final * (v_alpha_out - <bg, v_color>)
+                alpha_term[b, lane] = t * (v_render_alphas[cam, i, j] - bg_dot)
+        px, py = _block_tables(x0, y0, pixel_offset)
+        # one block's per-lane values (vis, T, 1 / (1 - alpha), valid, d out / d alpha), in one allocation
+        scratch = np.empty((5, LANES), dtype=np.float32)
+        # per-lane sums over the blocks of one Gaussian: v_x, v_y, v_a, v_b, v_c, v_opacity, |v_x|, |v_y|, v_rgb
+        sums = np.empty((GRAD_HEAD + n_channels, LANES), dtype=np.float32)
+        pair_sums = np.empty(LANES // 2, dtype=np.float64)
+        for m in range(min(tile_last, end - 1), start - 1, -1):
+            gx = packed[m, 0]
+            gy = packed[m, 1]
+            ca = packed[m, 2]
+            cb = packed[m, 3]
+            cc = packed[m, 4]
+            op = packed[m, 5]
+            sigma_cut = packed[m, 8]
+            j_first, j_end = _pixel_range(gx, packed[m, 6], pixel_offset, x0, x1)
+            if j_end <= j_first:
+                continue
+            i_first, i_end = _pixel_range(gy, packed[m, 7], pixel_offset, y0, y1)
+            if i_end <= i_first:
+                continue
+            bounded, k_cut, k_det, k_b = _ellipse_rows(ca, cb, cc, sigma_cut)
+            sums[:, :] = zero
+            mi = np.int32(m)
+            for br in range((i_first - y0) // BLOCK, (i_end - 1 - y0) // BLOCK + 1):
+                i_a = max(i_first, y0 + BLOCK * br)
+                i_b = min(i_end, y0 + BLOCK * br + BLOCK)
+                cf, ce = _block_cols(bounded, k_cut, k_det, k_b, gx, gy, pixel_offset, i_a, i_b, j_first, j_end)
+                if ce <= cf:
+                    continue
+                for bc in range((cf - x0) // BLOCK, (ce - 1 - x0) // BLOCK + 1):
+                    b = br * BLOCK + bc
+                    for lane in range(LANES):
+                        dx = gx - px[bc, lane]
+                        dy = gy - py[br, lane]
+                        sigma = half * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                        vis = exp_neg(sigma)
+                        alpha = min(max_alpha, op * vis)
+                        valid = ((mi <= last[b, lane]) & (sigma >= zero) & (sigma <= sigma_cut)
+                                 & (alpha >= alpha_threshold))
+                        ra = one / (one - alpha)
+                        t = T[b, lane] * ra
+                        T[b, lane] = t if valid else T[b, lane]
+                        scratch[0, lane] = vis
+                        scratch[1, lane] = t
+                        scratch[2, lane] = ra
+                        scratch[3, lane] = one if valid else zero
+                        scratch[4, lane] = alpha_term[b, lane] * ra
+                    for k in range(n_channels):
+                        ck = packed[m, PACK_HEAD + k]
+                        for lane in range(LANES):
+                            on = scratch[3, lane] > zero
+                            t = scratch[1, lane]
+                            fac = min(max_alpha, op * scratch[0, lane]) * t
+                            vk = v_c[k, b, lane]
+                            sums[GRAD_HEAD + k, lane] += fac * vk if on else zero
+                            scratch[4, lane] += (ck * t - buffer[k, b, lane] * scratch[2, lane]) * vk
+                            buffer[k, b, lane] += ck * fac if on else zero
+                    for lane in range(LANES):
+                        dx = gx - px[bc, lane]
+                        dy = gy - py[br, lane]
+                        vis = scratch[0, lane]
+                        v_alpha = scratch[4, lane]
+                        # gsplat leaves opacity and geometry gradients at 0 where the alpha clamp is active
+                        unclamped = (scratch[3, lane] > zero) & (op * vis <= max_alpha)
+                        v_sigma = -op * vis * v_alpha if unclamped else zero
+                        g_x = v_sigma * (ca * dx + cb * dy)
+                        g_y = v_sigma * (cb * dx + cc * dy)
+                        sums[0, lane] += g_x
+                        sums[1, lane] += g_y
+                        sums[2, lane] += half * v_sigma * dx * dx
+                        sums[3, lane] += v_sigma * dx * dy
+                        sums[4, lane] += half * v_sigma * dy * dy
+                        sums[5, lane] += vis * v_alpha if unclamped else zero
+                        sums[6, lane] += abs(g_x)
+                        sums[7, lane] += abs(g_y)
+            # pairwise over the lanes in float64, a fixed tree: element-wise (vectorizable) and deterministic
+            for q in range(GRAD_HEAD + n_channels):
+                for lane in range(LANES // 2):
+                    pair_sums[lane] = np.float64(sums[q, lane]) + np.float64(sums[q, lane + LANES // 2])
+                for lane in range(LANES // 4):
+                    pair_sums[lane] = pair_sums[lane] + pair_sums[lane + LANES // 4]
+                isect_grads[m, q] = (pair_sums[0] + pair_sums[2]) + (pair_sums[1] + pair_sums[3])

@@ -93,9 +93,9 @@ class _RasterizeToPixelsCPU(torch.autograd.Function):
         n_contrib = np.empty((C, image_height, image_width), np.int32)
         with numba.parallel_chunksize(TILES_PER_CHUNK):
             if tile_size == K.LANES:
-                K.rasterize_fwd_lanes(packed, offsets, bg, C, image_height, image_width, tile_h, tile_w, pixel_offset,
-                                      max_alpha, alpha_threshold, transmittance_threshold, render_colors, T_final,
-                                      last_ids, n_contrib)
+                K.rasterize_fwd_blocks(packed, offsets, bg, C, image_height, image_width, tile_h, tile_w, pixel_offset,
+                                       max_alpha, alpha_threshold, transmittance_threshold, render_colors, T_final,
+                                       last_ids, n_contrib)
             else:
                 K.rasterize_fwd(packed, offsets, bg, C, image_height, image_width, tile_size, tile_h, tile_w,
                                 pixel_offset, max_alpha, alpha_threshold, transmittance_threshold, render_colors,
@@ -127,9 +127,9 @@ class _RasterizeToPixelsCPU(torch.autograd.Function):
         isect_grads = np.zeros((ids.shape[0], K.GRAD_HEAD + D), np.float32)
         with numba.parallel_chunksize(TILES_PER_CHUNK):
             if tile_size == K.LANES:
-                K.rasterize_bwd_lanes(packed, offsets, bg, T_final, last_ids, v_colors_out, v_alphas_out, C,
-                                      image_height, image_width, tile_h, tile_w, pixel_offset, max_alpha,
-                                      alpha_threshold, isect_grads)
+                K.rasterize_bwd_blocks(packed, offsets, bg, T_final, last_ids, v_colors_out, v_alphas_out, C,
+                                       image_height, image_width, tile_h, tile_w, pixel_offset, max_alpha,
+                                       alpha_threshold, isect_grads)
             else:
                 K.rasterize_bwd(packed, offsets, bg, T_final, last_ids, v_colors_out, v_alphas_out, C, image_height,
                                 image_width, tile_size, tile_h, tile_w, pixel_offset, max_alpha, alpha_threshold,
