@@ -272,7 +272,6 @@ def rasterize_bwd(
     tiles_per_image = tile_height * tile_width
     n_tiles = n_cameras * tiles_per_image
     half = _F32(0.5)
-    one = _F32(1.0)
     for tile in prange(n_tiles):
         cam = tile // tiles_per_image
         tile_in_image = tile - cam * tiles_per_image
@@ -400,9 +399,9 @@ def reduce_isect_grads(isect_grads, flatten_ids, n_gaussians, gaussian_grads):
 
 
 # ------------------------------------------------------------------------------------------------------------------
-# Vectorized kernels for 16 px tiles: every row of a tile is processed as 16 lanes without branches (LLVM turns the
-# lane loops into AVX2 code), per-pixel state lives in [LANES, LANES] float32 arrays, the Gaussian's exp is the
-# branch-free ``exp_neg`` below. Decisions (skip, stop) are the same per-pixel tests as the scalar kernels above.
+# Lane utilities for the vectorized 16 px tile kernels below: 16 pixels are processed as 16 lanes without branches
+# (LLVM turns the lane loops into AVX2 code), and the Gaussian's exp is the branch-free ``exp_neg``. Decisions (skip,
+# stop) are the same per-pixel tests as the scalar kernels above.
 # ------------------------------------------------------------------------------------------------------------------
 
 LANES = 16
@@ -468,257 +467,12 @@ def _tile_geometry(tile, tiles_per_image, tile_width, image_width, image_height)
     return cam, x0, y0, min(x0 + LANES, image_width), min(y0 + LANES, image_height)
 
 
-
-
-@njit(parallel=True, cache=True, fastmath=False)
-def rasterize_fwd_lanes(
-    packed,
-    tile_offsets,
-    backgrounds,
-    n_cameras,
-    image_height,
-    image_width,
-    tile_height,
-    tile_width,
-    pixel_offset,
-    max_alpha,
-    alpha_threshold,
-    transmittance_threshold,
-    render_colors,
-    T_final,
-    last_ids,
-    n_contrib,
-):
-    """``rasterize_fwd`` for 16 px tiles with 16-lane rows (same outputs)."""
-    n_isects = packed.shape[0]
-    n_channels = packed.shape[1] - PACK_HEAD
-    tiles_per_image = tile_height * tile_width
-    n_tiles = n_cameras * tiles_per_image
-    half = _F32(0.5)
-    one = _F32(1.0)
-    zero = _F32(0.0)
-    for tile in prange(n_tiles):
-        cam, x0, y0, x1, y1 = _tile_geometry(tile, tiles_per_image, tile_width, image_width, image_height)
-        start = tile_offsets[tile]
-        end = tile_offsets[tile + 1] if tile + 1 < n_tiles else n_isects
-        T = np.ones((LANES, LANES), dtype=np.float32)
-        acc = np.zeros((n_channels, LANES, LANES), dtype=np.float32)
-        last = np.full((LANES, LANES), -1, dtype=np.int32)
-        count = np.zeros((LANES, LANES), dtype=np.float32)
-        # 1 while the pixel composites; 0 once done (and for lanes outside the image)
-        live = np.zeros((LANES, LANES), dtype=np.float32)
-        live[: y1 - y0, : x1 - x0] = one
-        pixel_x = np.empty(LANES, dtype=np.float32)
-        for jj in range(LANES):
-            pixel_x[jj] = _F32(x0 + jj) + pixel_offset
-        vis = np.empty(LANES, dtype=np.float32)
-        for m in range(start, end):
-            if (m - start) % LANES == LANES - 1:
-                n_live = 0
-                for r in range(LANES):
-                    for jj in range(LANES):
-                        n_live += 1 if live[r, jj] > zero else 0
-                if n_live == 0:
-                    break
-            gx = packed[m, 0]
-            gy = packed[m, 1]
-            ca = packed[m, 2]
-            cb = packed[m, 3]
-            cc = packed[m, 4]
-            op = packed[m, 5]
-            sigma_cut = packed[m, 8]
-            j_first, j_end = _pixel_range(gx, packed[m, 6], pixel_offset, x0, x1)
-            if j_end <= j_first:
-                continue
-            i_first, i_end = _pixel_range(gy, packed[m, 7], pixel_offset, y0, y1)
-            bounded, k_cut, k_det, k_b = _ellipse_rows(ca, cb, cc, sigma_cut)
-            mi = np.int32(m)
-            for i in range(i_first, i_end):
-                dy = gy - (_F32(i) + pixel_offset)
-                row_first, row_end = _row_range(bounded, k_cut, k_det, k_b, gx, dy, pixel_offset, j_first, j_end)
-                if row_end <= row_first:
-                    continue
-                r = i - y0
-                c_dy_dy = cc * dy * dy
-                for jj in range(LANES):
-                    dx = gx - pixel_x[jj]
-                    sigma = half * (ca * dx * dx + c_dy_dy) + cb * dx * dy
-                    alpha = min(max_alpha, op * exp_neg(sigma))
-                    t = T[r, jj]
-                    next_t = t * (one - alpha)
-                    ok = (sigma >= zero) & (sigma <= sigma_cut) & (alpha >= alpha_threshold) & (live[r, jj] > zero)
-                    use = ok & (next_t > transmittance_threshold)
-                    stop = ok & (next_t <= transmittance_threshold)
-                    vis[jj] = alpha * t if use else zero
-                    T[r, jj] = next_t if use else t
-                    last[r, jj] = mi if use else last[r, jj]
-                    count[r, jj] += one if use else zero
-                    live[r, jj] = zero if stop else live[r, jj]
-                for k in range(n_channels):
-                    ck = packed[m, PACK_HEAD + k]
-                    for jj in range(LANES):
-                        acc[k, r, jj] += ck * vis[jj]
-        for i in range(y0, y1):
-            for j in range(x0, x1):
-                r = i - y0
-                jj = j - x0
-                t = T[r, jj]
-                T_final[cam, i, j] = t
-                last_ids[cam, i, j] = last[r, jj]
-                n_contrib[cam, i, j] = np.int32(count[r, jj])
-                for k in range(n_channels):
-                    render_colors[cam, i, j, k] = acc[k, r, jj] + t * backgrounds[cam, k]
-
-
-# error_model="numpy": no ZeroDivisionError branch in 1 / (1 - alpha) (alpha <= ALPHA_CLAMP < 1), which would
-# keep the lane loop from vectorizing
-@njit(parallel=True, cache=True, fastmath=False, error_model="numpy")
-def rasterize_bwd_lanes(
-    packed,
-    tile_offsets,
-    backgrounds,
-    T_final,
-    last_ids,
-    v_render_colors,
-    v_render_alphas,
-    n_cameras,
-    image_height,
-    image_width,
-    tile_height,
-    tile_width,
-    pixel_offset,
-    max_alpha,
-    alpha_threshold,
-    isect_grads,
-):
-    """``rasterize_bwd`` for 16 px tiles with 16-lane rows (same outputs).
-
-    Per Gaussian, each gradient is summed per lane over the rows (element-wise adds: vectorizable without
-    reassociation), then over the 16 lanes in float64 in a fixed order. Transmittance is recovered by division in
-    float32, as gsplat's backward does.
-    """
-    n_isects = packed.shape[0]
-    n_channels = packed.shape[1] - PACK_HEAD
-    tiles_per_image = tile_height * tile_width
-    n_tiles = n_cameras * tiles_per_image
-    half = _F32(0.5)
-    one = _F32(1.0)
-    zero = _F32(0.0)
-    for tile in prange(n_tiles):
-        cam, x0, y0, x1, y1 = _tile_geometry(tile, tiles_per_image, tile_width, image_width, image_height)
-        start = tile_offsets[tile]
-        end = tile_offsets[tile + 1] if tile + 1 < n_tiles else n_isects
-        if end <= start:
-            continue
-        T = np.ones((LANES, LANES), dtype=np.float32)
-        last = np.full((LANES, LANES), -1, dtype=np.int32)
-        v_c = np.zeros((n_channels, LANES, LANES), dtype=np.float32)
-        alpha_term = np.zeros((LANES, LANES), dtype=np.float32)
-        buffer = np.zeros((n_channels, LANES, LANES), dtype=np.float32)
-        tile_last = -1
-        for i in range(y0, y1):
-            for j in range(x0, x1):
-                r = i - y0
-                jj = j - x0
-                t = T_final[cam, i, j]
-                T[r, jj] = t
-                lp = last_ids[cam, i, j]
-                last[r, jj] = lp
-                if lp > tile_last:
-                    tile_last = lp
-                bg_dot = zero
-                for k in range(n_channels):
-                    v = v_render_colors[cam, i, j, k]
-                    v_c[k, r, jj] = v
-                    bg_dot += backgrounds[cam, k] * v
-                # d(out)/d(alpha) terms that do not depend on the Gaussian: T_final * (v_alpha_out - <bg, v_color>)
-                alpha_term[r, jj] = t * (v_render_alphas[cam, i, j] - bg_dot)
-        pixel_x = np.empty(LANES, dtype=np.float32)
-        for jj in range(LANES):
-            pixel_x[jj] = _F32(x0 + jj) + pixel_offset
-        # one row's per-lane values (vis, T, 1 / (1 - alpha), valid, d out / d alpha), in one allocation
-        scratch = np.empty((5, LANES), dtype=np.float32)
-        # per-lane sums over the rows of one Gaussian: v_x, v_y, v_a, v_b, v_c, v_opacity, |v_x|, |v_y|, v_rgb
-        sums = np.empty((GRAD_HEAD + n_channels, LANES), dtype=np.float32)
-        pair_sums = np.empty(LANES // 2, dtype=np.float64)
-        for m in range(min(tile_last, end - 1), start - 1, -1):
-            gx = packed[m, 0]
-            gy = packed[m, 1]
-            ca = packed[m, 2]
-            cb = packed[m, 3]
-            cc = packed[m, 4]
-            op = packed[m, 5]
-            sigma_cut = packed[m, 8]
-            j_first, j_end = _pixel_range(gx, packed[m, 6], pixel_offset, x0, x1)
-            if j_end <= j_first:
-                continue
-            i_first, i_end = _pixel_range(gy, packed[m, 7], pixel_offset, y0, y1)
-            bounded, k_cut, k_det, k_b = _ellipse_rows(ca, cb, cc, sigma_cut)
-            sums[:, :] = zero
-            mi = np.int32(m)
-            for i in range(i_first, i_end):
-                dy = gy - (_F32(i) + pixel_offset)
-                row_first, row_end = _row_range(bounded, k_cut, k_det, k_b, gx, dy, pixel_offset, j_first, j_end)
-                if row_end <= row_first:
-                    continue
-                r = i - y0
-                c_dy_dy = cc * dy * dy
-                for jj in range(LANES):
-                    dx = gx - pixel_x[jj]
-                    sigma = half * (ca * dx * dx + c_dy_dy) + cb * dx * dy
-                    vis = exp_neg(sigma)
-                    alpha = min(max_alpha, op * vis)
-                    valid = (mi <= last[r, jj]) & (sigma >= zero) & (sigma <= sigma_cut) & (alpha >= alpha_threshold)
-                    ra = one / (one - alpha)
-                    t = T[r, jj] * ra
-                    T[r, jj] = t if valid else T[r, jj]
-                    scratch[0, jj] = vis
-                    scratch[1, jj] = t
-                    scratch[2, jj] = ra
-                    scratch[3, jj] = one if valid else zero
-                    scratch[4, jj] = alpha_term[r, jj] * ra
-                for k in range(n_channels):
-                    ck = packed[m, PACK_HEAD + k]
-                    for jj in range(LANES):
-                        on = scratch[3, jj] > zero
-                        t = scratch[1, jj]
-                        fac = min(max_alpha, op * scratch[0, jj]) * t
-                        vk = v_c[k, r, jj]
-                        sums[GRAD_HEAD + k, jj] += fac * vk if on else zero
-                        scratch[4, jj] += (ck * t - buffer[k, r, jj] * scratch[2, jj]) * vk
-                        buffer[k, r, jj] += ck * fac if on else zero
-                for jj in range(LANES):
-                    dx = gx - pixel_x[jj]
-                    vis = scratch[0, jj]
-                    v_alpha = scratch[4, jj]
-                    # gsplat leaves opacity and geometry gradients at 0 where the alpha clamp is active
-                    unclamped = (scratch[3, jj] > zero) & (op * vis <= max_alpha)
-                    v_sigma = -op * vis * v_alpha if unclamped else zero
-                    g_x = v_sigma * (ca * dx + cb * dy)
-                    g_y = v_sigma * (cb * dx + cc * dy)
-                    sums[0, jj] += g_x
-                    sums[1, jj] += g_y
-                    sums[2, jj] += half * v_sigma * dx * dx
-                    sums[3, jj] += v_sigma * dx * dy
-                    sums[4, jj] += half * v_sigma * dy * dy
-                    sums[5, jj] += vis * v_alpha if unclamped else zero
-                    sums[6, jj] += abs(g_x)
-                    sums[7, jj] += abs(g_y)
-            # pairwise over the lanes in float64, a fixed tree: element-wise (vectorizable) and deterministic
-            for q in range(GRAD_HEAD + n_channels):
-                for jj in range(LANES // 2):
-                    pair_sums[jj] = np.float64(sums[q, jj]) + np.float64(sums[q, jj + LANES // 2])
-                for jj in range(LANES // 4):
-                    pair_sums[jj] = pair_sums[jj] + pair_sums[jj + LANES // 4]
-                isect_grads[m, q] = (pair_sums[0] + pair_sums[2]) + (pair_sums[1] + pair_sums[3])
-
-
 # ------------------------------------------------------------------------------------------------------------------
 # 4x4-block kernels for 16 px tiles: a tile is 16 blocks of 4x4 pixels and the 16 pixels of one block are the 16
 # branch-free lanes. A Gaussian visits only the blocks that its ellipse's row spans touch (the union of the spans of
 # the block's 4 rows), so a small Gaussian wastes far fewer lanes than with whole 16 px rows. State is [block, lane]:
 # block ``b = (r // 4) * 4 + c // 4``, lane ``l = (r % 4) * 4 + c % 4`` for the pixel at tile row r, column c.
-# Per-pixel arithmetic and tests are exactly those of the row kernels above.
+# Per-pixel arithmetic and tests are exactly those of the scalar kernels above.
 # ------------------------------------------------------------------------------------------------------------------
 
 BLOCK = 4
@@ -741,7 +495,7 @@ def _block_cols(bounded, k_cut, k_det, k_b, gx, gy, pixel_offset, i_a, i_b, j_fi
 
 @njit(inline="always")
 def _block_tables(x0, y0, pixel_offset):
-    """Pixel-centre coordinates per (block column, lane) and (block row, lane), float32 exactly as the row kernels."""
+    """Pixel-centre coordinates per (block column, lane) and (block row, lane), float32 exactly as the scalar kernels."""
     px = np.empty((BLOCK, LANES), dtype=np.float32)
     py = np.empty((BLOCK, LANES), dtype=np.float32)
     for q in range(BLOCK):
