@@ -17,6 +17,8 @@ from typing import Iterable
 import numpy as np
 import torch
 
+from kc_splatfacto.engine.figures import pyplot, save_figure
+
 #: Orientation names of (cH, cV, cD), the paper's naming.
 ORIENTATIONS = ("LH", "HL", "HH")
 #: Added to both normalized error maps before the ratio: keeps the ratio finite where both errors vanish.
@@ -54,10 +56,7 @@ def kurtosis_history(records: Iterable[dict]) -> tuple[np.ndarray, np.ndarray, n
 
 def plot_kurtosis_history(records: Iterable[dict], path: str | Path, title: str = "") -> Path:
     """PNG: one panel per level, render (solid) and ground truth (dashed) kurtosis of each orientation over steps."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     steps, render, gt = kurtosis_history(records)
     levels = render.shape[1] // 3
@@ -77,11 +76,7 @@ def plot_kurtosis_history(records: Iterable[dict], path: str | Path, title: str 
         ax.legend(fontsize=6, ncol=2)
     if title:
         fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    path = save_figure(fig, path, dpi=110)
     return path
 
 
@@ -108,10 +103,7 @@ def plot_kurtosis_gap_comparison(records_by_method: dict[str, Iterable[dict]], p
     """PNG: per level, the running mean (``window`` log records) of the render-vs-GT kurtosis gap, one curve per
     method. The logged kurtosis is that of the step's training image, so single records are noisy; the running mean
     shows the trend."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     gaps = {method: kurtosis_gap(records) for method, records in records_by_method.items()}
     if not gaps:
@@ -128,11 +120,7 @@ def plot_kurtosis_gap_comparison(records_by_method: dict[str, Iterable[dict]], p
         ax.legend(fontsize=7)
     if title:
         fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    path = save_figure(fig, path, dpi=110)
     return path
 
 
@@ -199,10 +187,7 @@ def save_view_diagnostics(
 ) -> Path:
     """PNG for one test view. Top row: signed coarse-level LH/HL/HH differences (pred - GT, symmetric colour range).
     Bottom row: render, ground truth, log2 wavelet-vs-pixel error ratio (red wavelet-, blue pixel-emphasized)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     diffs = coarse_subband_differences(pred, gt, wave, levels)
     ratio = wavelet_pixel_error_ratio(pred, gt, wave, levels)
@@ -225,9 +210,5 @@ def save_view_diagnostics(
         ax.set_yticks([])
     if title:
         fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    path = save_figure(fig, path, dpi=100)
     return path

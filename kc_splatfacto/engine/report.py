@@ -23,6 +23,8 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
+from kc_splatfacto.engine.figures import pyplot, save_figure
+
 #: Metrics reported, with the direction that is better.
 METRICS = {"psnr": "higher", "ssim": "higher", "lpips": "lower"}
 METRIC_LABELS = {"psnr": "PSNR (dB)", "ssim": "SSIM", "lpips": "LPIPS"}
@@ -175,10 +177,7 @@ def plot_metric_vs_time(
 
     Returns the curves drawn (empty, and no file written, when no run has a value for the metric).
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     curves = aggregate_curves(rows, metric, time_key)
     if not curves:
@@ -204,11 +203,7 @@ def plot_metric_vs_time(
         ax.set_title(f"{scene}: {METRIC_LABELS.get(metric, metric)} vs time (mean, min-max over seeds)", fontsize=9)
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=8)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    path = save_figure(fig, path, dpi=120)
     return curves
 
 
