@@ -8,7 +8,12 @@ import torch
 from scipy.spatial.transform import Rotation, Slerp
 
 from kc_splatfacto.data.outputs import Cameras
-from kc_splatfacto.engine.camera_path import interpolate_camera_path, quat_to_rotmat, rotmat_to_quat, slerp
+from kc_splatfacto.engine.camera_path import (
+    interpolate_camera_path,
+    rotmat_to_quat,
+    slerp,
+)
+from kc_splatfacto.render import quat_to_rotmat
 
 
 def _keys(num: int = 4, seed: int = 0) -> tuple[Cameras, np.ndarray, np.ndarray]:

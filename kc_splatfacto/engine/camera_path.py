@@ -9,6 +9,7 @@ from __future__ import annotations
 import torch
 
 from kc_splatfacto.data.outputs import Cameras
+from kc_splatfacto.render.projection import quat_to_rotmat
 
 #: Below this angle (radians) between two orientations slerp degenerates to lerp + renormalize.
 SLERP_LINEAR_THRESHOLD = 1e-6
@@ -34,21 +35,6 @@ def rotmat_to_quat(rotmats: torch.Tensor) -> torch.Tensor:
     q = candidates[torch.arange(r.shape[0]), choice]
     q = q / q.norm(dim=-1, keepdim=True)
     return torch.where(q[:, :1] < 0, -q, q)
-
-
-def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
-    """Quaternions [N,4] (w, x, y, z; normalized here) -> rotation matrices [N,3,3]."""
-    q = quats.to(torch.float64)
-    q = q / q.norm(dim=-1, keepdim=True)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(-1, 3, 3)
 
 
 def slerp(q0: torch.Tensor, q1: torch.Tensor, t: torch.Tensor) -> torch.Tensor:

@@ -10,23 +10,11 @@ from __future__ import annotations
 from typing import Any, Callable
 
 import torch
-import torch.nn.functional as F
+
+from kc_splatfacto.render.projection import quat_to_rotmat
 
 SPLIT_SCALE_DIVISOR = 1.6
 """a split Gaussian's children have scale / 1.6 (3DGS)"""
-
-
-def normalized_quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
-    """[N, 4] unit quaternions (wxyz) -> [N, 3, 3] rotation matrices."""
-    w, x, y, z = quats.unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(quats.shape[:-1] + (3, 3))
 
 
 @torch.no_grad()
@@ -94,8 +82,7 @@ def split(
     sel = torch.where(mask)[0]
     rest = torch.where(~mask)[0]
     scales = torch.exp(params["scales"][sel])
-    quats = F.normalize(params["quats"][sel], dim=-1)
-    rotmats = normalized_quat_to_rotmat(quats)
+    rotmats = quat_to_rotmat(params["quats"][sel])  # normalizes
     noise = torch.randn(n_samples, len(sel), 3, device=scales.device, dtype=scales.dtype)
     samples = torch.einsum("nij,nj,bnj->bni", rotmats, scales, noise)  # [S, M, 3]
 
