@@ -258,7 +258,9 @@ def _pad(x: Tensor, filter_len: int, mode: str) -> Tensor:
     before, after = filter_len - 2, filter_len - 1
     if mode == "zero":
         return F.pad(x, (before, after, before, after))
-    if mode == "symmetric" and after <= min(height, width):
+    # On a GPU the step is bound by kernel launches, not passes: the two-gather path (2 launches forward, 2 backward)
+    # beats the slice/flip fast path (~9 forward, ~14 backward); measured on an H100 (docs/results/gpu/README.md).
+    if mode == "symmetric" and after <= min(height, width) and x.device.type == "cpu":
         return _symmetric_pad(x, before, after)
     if mode == "reflect" and after < min(height, width):
         return F.pad(x, (before, after, before, after), mode="reflect")

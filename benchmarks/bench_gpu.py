@@ -1,0 +1,155 @@
+"""GPU step time: splatfacto and kc-splatfacto through ``kc-train``'s Trainer on CUDA (gsplat backend), against a
+minimal gsplat ``examples/simple_trainer.py``-style loop (gsplat.rasterization, 0.8 L1 + 0.2 D-SSIM, one Adam per
+parameter, no density control, no checks) from the SAME Gaussians.
+
+All three start from one warm-up checkpoint (splatfacto, real schedule, training resolution fixed at the full image
+size), growth capped at its Gaussian count. Rounds alternate methods; medians are reported. Needs CUDA and gsplat;
+prints a table (ms per step) and the kc/splatfacto ratio (target <= 1.10x).
+
+    python benchmarks/bench_gpu.py [--scene castle-P30] [--downscale 1] [--warmup-steps 3000] [--steps 200] [--rounds 3]
+"""
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import argparse  # noqa: E402
+import statistics  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import torch  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_train import SHARED_DATA, TARGET_RATIO, make_config  # noqa: E402
+
+from kc_splatfacto.engine.trainer import PHASES, Trainer  # noqa: E402
+
+
+def gpu_config(method, args, out, iterations):
+    config = make_config(method, args.scene, out, args.downscale, iterations, 1.0)
+    config.machine.device = "cuda"
+    config.pipeline.model.num_downscales = 0  # time every step at the full image size
+    config.logging.profile_phases = args.profile_phases
+    return config
+
+
+def timed_method(method, args, out, run_dir, n_gaussians):
+    config = gpu_config(method, args, out, args.warmup_steps + args.steps)
+    config.load_dir = run_dir / "nerfstudio_models"
+    config.load_step = args.warmup_steps
+    config.pipeline.model.max_num_gaussians = n_gaussians
+    trainer = Trainer(config)
+    trainer.setup()
+    trainer.config.max_num_iterations = args.warmup_steps + 10  # GT caches, kernels, allocator warm
+    trainer.train()
+    trainer.phase_times = {p: 0.0 for p in PHASES}
+    trainer.phase_steps = 0
+    trainer.config.max_num_iterations = args.warmup_steps + 10 + args.steps
+    trainer.start_step = args.warmup_steps + 10
+    torch.cuda.synchronize()
+    t0 = time.perf_counter()
+    trainer.train()
+    torch.cuda.synchronize()
+    steps = trainer.phase_steps
+    row = {p: 1000 * trainer.phase_times[p] / steps for p in PHASES}
+    row["step"] = 1000 * (time.perf_counter() - t0) / steps
+    row["gaussians"] = trainer.model.num_points
+    return row
+
+
+def reference_loop(args, state, dataset, steps):
+    """gsplat simple_trainer-style: rasterization + 0.8 L1 + 0.2 (1 - SSIM) + Adam, no density control."""
+    import gsplat
+    from kornia.metrics import ssim as kornia_ssim
+
+    params = {k: torch.nn.Parameter(v.detach().clone().cuda()) for k, v in state.items()}
+    lrs = {"means": 1.6e-4, "scales": 5e-3, "quats": 1e-3, "opacities": 5e-2, "features_dc": 2.5e-3,
+           "features_rest": 2.5e-3 / 20}
+    optimizers = {k: torch.optim.Adam([params[k]], lr=lr, eps=1e-15) for k, lr in lrs.items()}
+    cams = [dataset.cameras[i] for i in range(len(dataset))]
+    images = [torch.as_tensor(dataset.image_uint8(i)).cuda().float() / 255.0 for i in range(len(dataset))]
+    viewmats = [c.viewmats.float().cuda() for c in cams]
+    Ks = [c.Ks.float().cuda() for c in cams]
+    height, width = images[0].shape[:2]
+
+    def one(i):
+        colors = torch.cat([params["features_dc"][:, None, :], params["features_rest"]], dim=1)
+        render, _, _ = gsplat.rasterization(
+            params["means"], params["quats"], torch.exp(params["scales"]),
+            torch.sigmoid(params["opacities"]).squeeze(-1), colors, viewmats[i], Ks[i], width, height,
+            sh_degree=3, packed=False, absgrad=True)
+        gt = images[i]
+        l1 = (render[0] - gt).abs().mean()
+        ssim = kornia_ssim(render[0].permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None], 11).mean()
+        loss = 0.8 * l1 + 0.2 * (1 - ssim)
+        loss.backward()
+        for opt in optimizers.values():
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+
+    for s in range(10):
+        one(s % len(images))
+    torch.cuda.synchronize()
+    t0 = time.perf_counter()
+    for s in range(steps):
+        one(s % len(images))
+    torch.cuda.synchronize()
+    return {"step": 1000 * (time.perf_counter() - t0) / steps, "gaussians": params["means"].shape[0]}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", type=Path, default=SHARED_DATA / "castle-P30")
+    parser.add_argument("--downscale", type=int, default=1)
+    parser.add_argument("--warmup-steps", type=int, default=3000)
+    parser.add_argument("--steps", type=int, default=200)
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--profile-phases", action="store_true", help="synchronise after each phase (per-phase table)")
+    args = parser.parse_args()
+    if not torch.cuda.is_available():
+        print("needs CUDA", file=sys.stderr)
+        return 1
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp)
+        warm = gpu_config("splatfacto", args, out, args.warmup_steps)
+        warm.timestamp = "warmup"
+        warm.logging.profile_phases = False
+        trainer = Trainer(warm)
+        t0 = time.perf_counter()
+        run_dir = trainer.train()
+        warm_s = time.perf_counter() - t0
+        n_gaussians = trainer.model.num_points
+        height, width = trainer.datamanager.train_dataset.image_uint8(0).shape[:2]
+        print(f"warm-up: splatfacto {args.warmup_steps} steps on {torch.cuda.get_device_name()} -> {n_gaussians} "
+              f"Gaussians at {width}x{height} in {warm_s:.1f} s ({1000 * warm_s / args.warmup_steps:.1f} ms/step "
+              "incl. densification and evaluation)")
+        state = {k: v.detach() for k, v in trainer.model.gauss_params.items()}
+        rows: dict[str, list[dict]] = {"splatfacto": [], "kc-splatfacto": [], "gsplat-simple-loop": []}
+        for _ in range(args.rounds):
+            for method in ("splatfacto", "kc-splatfacto"):
+                rows[method].append(timed_method(method, args, out, run_dir, n_gaussians))
+            rows["gsplat-simple-loop"].append(reference_loop(args, state, trainer.datamanager.train_dataset,
+                                                             args.steps))
+    median = {m: {k: statistics.median(r[k] for r in rs) for k in rs[0]} for m, rs in rows.items()}
+    base = median["splatfacto"]["step"]
+    print(f"\nms per step on {torch.cuda.get_device_name()} (median of {args.rounds} rounds x {args.steps} steps; "
+          f"{args.scene.name} {width}x{height}, {n_gaussians} Gaussians; phases "
+          f"{'synchronised' if args.profile_phases else 'not synchronised (no per-phase split)'})\n")
+    cols = list(PHASES) if args.profile_phases else []
+    print("| method | " + " | ".join(cols + ["step", "vs splatfacto", "Gaussians"]) + " |")
+    print("|" + "---|" * (len(cols) + 4))
+    for method, values in median.items():
+        cells = [f"{values[p]:.2f}" if p in values else "-" for p in cols]
+        cells += [f"{values['step']:.2f}", f"{values['step'] / base:.3f}x", f"{int(values['gaussians'])}"]
+        print(f"| {method} | " + " | ".join(cells) + " |")
+    ratio = median["kc-splatfacto"]["step"] / base
+    print(f"\nkc-splatfacto / splatfacto step time: {ratio:.3f}x (target <= {TARGET_RATIO:.2f}x): "
+          f"{'met' if ratio <= TARGET_RATIO else 'NOT met'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
