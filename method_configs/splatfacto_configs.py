@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from kc_splatfacto.engine.config import TrainerConfig
+from kc_splatfacto.engine.trainer import TrainerConfig
 from kc_splatfacto.model.splatfacto import SplatfactoModelConfig
 from kc_splatfacto.registry import MethodSpecification
 

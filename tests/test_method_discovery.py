@@ -47,7 +47,7 @@ def test_builtin_methods_are_registered_with_the_papers_weights():
 
 def test_throwaway_distribution_registers_a_method_seen_by_kc_train_help(tmp_path):
     (tmp_path / "kc_dummy_plugin.py").write_text(textwrap.dedent("""
-        from kc_splatfacto.engine.config import TrainerConfig
+        from kc_splatfacto.engine.trainer import TrainerConfig
         from kc_splatfacto.registry import MethodSpecification
 
         dummy = MethodSpecification(config=TrainerConfig(method_name="dummy-splats"),
@@ -68,7 +68,7 @@ def test_throwaway_distribution_registers_a_method_seen_by_kc_train_help(tmp_pat
 
 def test_environment_variable_adds_a_method(tmp_path):
     (tmp_path / "kc_env_plugin.py").write_text(
-        "from kc_splatfacto.engine.config import TrainerConfig\n"
+        "from kc_splatfacto.engine.trainer import TrainerConfig\n"
         "from kc_splatfacto.registry import MethodSpecification\n"
         "spec = MethodSpecification(TrainerConfig(method_name='env-splats'), 'named by KC_SPLATFACTO_METHOD_CONFIGS')\n"
     )

@@ -6,7 +6,7 @@ import copy
 from pathlib import Path
 
 from kc_splatfacto.data.demo import DemoDataParserConfig
-from kc_splatfacto.engine.config import TrainerConfig
+from kc_splatfacto.engine.trainer import TrainerConfig
 from kc_splatfacto.registry import discover_methods
 
 TINY_WIDTH, TINY_HEIGHT = 64, 48

@@ -1,28 +1,25 @@
-"""Trainer, machine, pipeline and data-manager configs (nerfstudio names), saved to and loaded from ``config.yml``.
+"""The engine's configs that build nothing themselves: where to run (:class:`MachineConfig`) and what to log
+(:class:`LoggingConfig`).
 
-Every config is a dataclass; ``setup()`` builds what it configures. The YAML is PyYAML's full object dump (what
-nerfstudio writes too): enough to rebuild the run exactly, including the dataparser config and the model config.
+Every config that builds something lives beside the class it builds and has ``setup()``:
+``trainer.TrainerConfig -> Trainer``, ``pipeline.PipelineConfig -> Pipeline``, ``datamanager.DataManagerConfig ->
+DataManager``, ``model.splatfacto.SplatfactoModelConfig -> SplatfactoModel``, ``optimizers.OptimizersConfig``. This
+module imports none of them, so the engine has no import circle.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import datetime
+import importlib
 import random
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-import tyro
 import yaml
 
-from kc_splatfacto.engine.optimizers import OptimizersConfig
-from kc_splatfacto.model.splatfacto import SplatfactoModelConfig
 from kc_splatfacto.atomic import atomic_write_text
-
-TIMESTAMP_FORMAT = "%Y-%m-%d_%H%M%S"
 
 
 def _gsplat_importable() -> bool:
@@ -59,48 +56,6 @@ class MachineConfig:
 
 
 @dataclass
-class DataManagerConfig:
-    """Which scene to load and how; builds the train/test :class:`ImageDataset`s (see ``engine.datamanager``)."""
-
-    data: Path | None = None
-    """scene folder, or 'demo' for the generated demo scene"""
-    dataparser: tyro.conf.Suppress[Any] = None
-    """a dataparser config (detected from ``data`` when None)"""
-    dataparser_name: str | None = None
-    """force a registered dataparser by name instead of detecting the format"""
-    downscale_factor: int | None = None
-    """image downscale factor handed to the dataparser (None keeps the dataparser's own)"""
-    eval_split: str = "test"
-    """split evaluated during and after training"""
-
-    def resolve_dataparser(self) -> Any:
-        """The dataparser config to use: the explicit one, else detected from ``data``; downscale applied."""
-        parser_config = self.dataparser
-        if parser_config is None:
-            if self.data is None:
-                raise ValueError("no scene given: pass --data PATH (a scene folder, or 'demo' for the demo scene)")
-            from kc_splatfacto.data import resolve_dataparser
-
-            parser_config = resolve_dataparser(self.data, self.dataparser_name)
-        if self.downscale_factor is not None and dataclasses.is_dataclass(parser_config):
-            parser_config = dataclasses.replace(parser_config, downscale_factor=self.downscale_factor)
-        return parser_config
-
-    def setup(self, seed: int = 42) -> "DataManager":
-        from kc_splatfacto.engine.datamanager import DataManager
-
-        return DataManager(self, seed=seed)
-
-
-@dataclass
-class PipelineConfig:
-    """The data manager and the model."""
-
-    datamanager: DataManagerConfig = field(default_factory=DataManagerConfig)
-    model: SplatfactoModelConfig = field(default_factory=SplatfactoModelConfig)
-
-
-@dataclass
 class LoggingConfig:
     """What the trainer writes while it runs."""
 
@@ -112,72 +67,17 @@ class LoggingConfig:
     """synchronize and time each phase of a step (render, losses, backward, optimizer, density control)"""
 
 
-@dataclass
-class TrainerConfig:
-    """One training run (nerfstudio's ``TrainerConfig``/``ExperimentConfig`` field names)."""
 
-    method_name: str = "splatfacto"
-    experiment_name: str | None = None
-    """run folder component; defaults to the scene folder's name"""
-    output_dir: Path = Path("outputs")
-    timestamp: str = "{timestamp}"
-    """run folder component; '{timestamp}' is replaced by the start time"""
-    data: Path | None = None
-    """alias for --pipeline.datamanager.data"""
-    max_num_iterations: int = 30000
-    steps_per_save: int = 2000
-    steps_per_eval_all_images: int = 1000
-    """evaluate the whole eval split every this many steps (0 turns it off; the last step is always evaluated)"""
-    eval_at_steps: tuple[int, ...] = ()
-    """extra evaluation steps (e.g. log-spaced ones for quality-against-time reports)"""
-    save_only_latest_checkpoint: bool = True
-    load_dir: Path | None = None
-    """resume from the newest checkpoint in this nerfstudio_models folder (or a run folder)"""
-    load_step: int | None = None
-    """resume from this step's checkpoint instead of the newest"""
-    max_consecutive_bad_steps: int = 5
-    """stop with an error after this many non-finite steps in a row (the last good state is saved)"""
-    machine: MachineConfig = field(default_factory=MachineConfig)
-    pipeline: PipelineConfig = field(default_factory=PipelineConfig)
-    optimizers: OptimizersConfig = field(default_factory=OptimizersConfig)
-    logging: LoggingConfig = field(default_factory=LoggingConfig)
-
-    def resolve_aliases(self) -> None:
-        """Fold ``--data`` into the data manager config."""
-        if self.data is not None:
-            self.pipeline.datamanager.data = self.data
-            self.data = None
-
-    def base_dir(self) -> Path:
-        """``output_dir/experiment/method/timestamp``, with '{timestamp}' filled in."""
-        experiment = self.experiment_name
-        if experiment is None:
-            data = self.pipeline.datamanager.data
-            if data is None:  # a dataparser config given directly (kc-bench, tests): its scene folder
-                data = getattr(self.pipeline.datamanager.dataparser, "data", None)
-            experiment = Path(str(data)).name if data is not None else "unnamed"
-        timestamp = self.timestamp
-        if timestamp == "{timestamp}":
-            timestamp = datetime.datetime.now().strftime(TIMESTAMP_FORMAT)
-            self.timestamp = timestamp
-        return Path(self.output_dir) / experiment / self.method_name / timestamp
-
-    def save_config(self, path: Path) -> None:
-        save_config(self, path)
-
-    def setup(self) -> "Trainer":
-        from kc_splatfacto.engine.trainer import Trainer
-
-        return Trainer(self)
-
-
-def save_config(config: TrainerConfig, path: Path) -> None:
-    """Write the full config as YAML, atomically (temp file + rename)."""
+def save_config(config: Any, path: Path) -> None:
+    """Write a run's full config (a ``TrainerConfig``) as YAML (PyYAML's object dump, as nerfstudio writes it),
+    atomically."""
     atomic_write_text(path, yaml.dump(config, Dumper=yaml.Dumper, sort_keys=False))
 
 
-def load_config(path: Path | str) -> TrainerConfig:
-    """Read a ``config.yml`` written by :func:`save_config`."""
+def load_config(path: Path | str) -> Any:
+    """Read a ``config.yml`` written by :func:`save_config`: the run's ``TrainerConfig``."""
+    from kc_splatfacto.engine.trainer import TrainerConfig  # the top of the tree; imported here only to check
+
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"config file {path} not found: pass the config.yml of a run folder")
@@ -185,3 +85,18 @@ def load_config(path: Path | str) -> TrainerConfig:
     if not isinstance(config, TrainerConfig):
         raise ValueError(f"{path} does not hold a kc-splatfacto TrainerConfig (found {type(config).__name__})")
     return config
+
+
+# config.yml files written before the configs moved beside their classes name them here: PyYAML resolves
+# ``kc_splatfacto.engine.config.TrainerConfig`` by attribute lookup, which this forwards (lazily: no import circle).
+_MOVED = {
+    "TrainerConfig": "kc_splatfacto.engine.trainer",
+    "PipelineConfig": "kc_splatfacto.engine.pipeline",
+    "DataManagerConfig": "kc_splatfacto.engine.datamanager",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _MOVED:
+        return getattr(importlib.import_module(_MOVED[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -9,15 +9,18 @@ from typing import Any
 import torch
 
 from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, CHECKPOINT_PATTERN, find_checkpoint, load_checkpoint
-from kc_splatfacto.engine.config import TrainerConfig, load_config
+from kc_splatfacto.engine.config import load_config
+from kc_splatfacto.engine.pipeline import Pipeline
+from kc_splatfacto.engine.trainer import TrainerConfig
 
 
 @dataclass
 class LoadedRun:
-    """A trained model with its datasets.
+    """A trained pipeline: its model and datasets.
 
     Attributes:
         config: the run's TrainerConfig (as saved in config.yml).
+        pipeline: the Pipeline built as training builds it, with the checkpoint's state.
         model: the SplatfactoModel in eval mode, with the checkpoint's Gaussians.
         step: the checkpoint's step (optimization steps completed).
         run_dir: the run folder (holds config.yml, metrics.jsonl, nerfstudio_models/).
@@ -26,6 +29,7 @@ class LoadedRun:
     """
 
     config: TrainerConfig
+    pipeline: Pipeline
     model: Any
     step: int
     run_dir: Path
@@ -42,20 +46,15 @@ def load_run(config_path: Path | str, step: int | None = None, device: str | tor
     config = load_config(config_path)
     run_dir = config_path.parent
     checkpoint_path = find_checkpoint(run_dir / CHECKPOINT_DIR, step)
-    datamanager = config.pipeline.datamanager.setup(seed=config.machine.seed)
-    train_outputs = datamanager.train_outputs
-    model = config.pipeline.model.setup(
-        scene_scale=float(train_outputs.scene_scale),
-        num_train_data=len(datamanager.train_dataset),
-        seed_points=datamanager.seed_points(),
-    )
-    checkpoint = load_checkpoint(checkpoint_path, map_location="cpu")
-    model.load_gauss_params(checkpoint["model"])
-    model = model.to(device)
-    model.step = int(checkpoint["step"])
+    pipeline = config.pipeline.setup(device=device, seed=config.machine.seed)  # as the trainer builds it
+    checkpoint = load_checkpoint(checkpoint_path, map_location=device)
+    pipeline.load_state_dict({"model": checkpoint["model"]}, step=int(checkpoint["step"]))
+    model = pipeline.model
     model.eval()
+    datamanager = pipeline.datamanager
     return LoadedRun(
         config=config,
+        pipeline=pipeline,
         model=model,
         step=int(CHECKPOINT_PATTERN.match(checkpoint_path.name).group(1)),
         run_dir=run_dir,

@@ -16,12 +16,15 @@ image order and the torch / numpy / python RNG states, so a resumed run continue
 
 from __future__ import annotations
 
+import copy
+import datetime
 import math
 import random
 import signal
 import threading
 import time
 import warnings
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -29,11 +32,10 @@ import numpy as np
 import torch
 
 from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, find_checkpoint, load_checkpoint, save_checkpoint
-from kc_splatfacto.engine.config import TrainerConfig, save_config
-from kc_splatfacto.engine.evaluation import evaluate_split
+from kc_splatfacto.engine.config import LoggingConfig, MachineConfig, save_config
 from kc_splatfacto.engine.logging import MetricsWriter, ProgressBar
-from kc_splatfacto.model import ops
-from kc_splatfacto.model.strategy import NoGaussiansLeftError
+from kc_splatfacto.engine.optimizers import OptimizersConfig
+from kc_splatfacto.engine.pipeline import Pipeline, PipelineConfig
 
 GRAD_OVERFLOW = 1e18
 """a gradient this large would overflow Adam's squared-gradient average in float32 (1e36 < 3.4e38 just fits)"""
@@ -41,6 +43,69 @@ PHASES = ("render", "losses", "backward", "optimizer", "density_control")
 
 # a skipped (non-finite) step still advances the schedules, which torch reports as a misuse; it is deliberate here
 warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step\\(\\)` before `optimizer.step\\(\\)`")
+
+
+TIMESTAMP_FORMAT = "%Y-%m-%d_%H%M%S"
+
+
+@dataclass
+class TrainerConfig:
+    """One training run (nerfstudio's ``TrainerConfig``/``ExperimentConfig`` field names); ``setup()`` builds the
+    :class:`Trainer`."""
+
+    method_name: str = "splatfacto"
+    """registered method this config came from (a run folder component)"""
+    experiment_name: str | None = None
+    """run folder component; defaults to the scene folder's name"""
+    output_dir: Path = Path("outputs")
+    """root of the run folders"""
+    timestamp: str = "{timestamp}"
+    """run folder component; '{timestamp}' is replaced by the start time"""
+    data: Path | None = None
+    """alias for --pipeline.datamanager.data"""
+    max_num_iterations: int = 30000
+    """number of optimization steps"""
+    steps_per_save: int = 2000
+    """write a checkpoint every this many steps (and at the last one)"""
+    steps_per_eval_all_images: int = 1000
+    """evaluate the whole eval split every this many steps (0 turns it off; the last step is always evaluated)"""
+    eval_at_steps: tuple[int, ...] = ()
+    """extra evaluation steps (e.g. log-spaced ones for quality-against-time reports)"""
+    save_only_latest_checkpoint: bool = True
+    """delete older checkpoints after writing a new one"""
+    load_dir: Path | None = None
+    """resume from the newest checkpoint in this nerfstudio_models folder (or a run folder)"""
+    load_step: int | None = None
+    """resume from this step's checkpoint instead of the newest"""
+    max_consecutive_bad_steps: int = 5
+    """stop with an error after this many non-finite steps in a row (the last good state is saved)"""
+    machine: MachineConfig = field(default_factory=MachineConfig)
+    pipeline: PipelineConfig = field(default_factory=PipelineConfig)
+    optimizers: OptimizersConfig = field(default_factory=OptimizersConfig)
+    logging: LoggingConfig = field(default_factory=LoggingConfig)
+
+    def resolve_aliases(self) -> None:
+        """Fold ``--data`` into the data manager config."""
+        if self.data is not None:
+            self.pipeline.datamanager.data = self.data
+            self.data = None
+
+    def base_dir(self) -> Path:
+        """``output_dir/experiment/method/timestamp``, with '{timestamp}' filled in."""
+        experiment = self.experiment_name
+        if experiment is None:
+            data = self.pipeline.datamanager.data
+            if data is None:  # a dataparser config given directly (kc-bench, tests): its scene folder
+                data = getattr(self.pipeline.datamanager.dataparser, "data", None)
+            experiment = Path(str(data)).name if data is not None else "unnamed"
+        timestamp = self.timestamp
+        if timestamp == "{timestamp}":
+            timestamp = datetime.datetime.now().strftime(TIMESTAMP_FORMAT)
+            self.timestamp = timestamp
+        return Path(self.output_dir) / experiment / self.method_name / timestamp
+
+    def setup(self) -> Trainer:
+        return Trainer(self)
 
 
 class TrainingDivergedError(RuntimeError):
@@ -55,8 +120,7 @@ class Trainer:
         self.config = config
         self.device = config.machine.resolve_device()
         self.run_dir: Path | None = None
-        self.model = None
-        self.datamanager = None
+        self.pipeline: Pipeline | None = None
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
         self.schedulers: dict[str, Any] = {}
         self.start_step = 0
@@ -69,18 +133,19 @@ class Trainer:
         self._train_s = 0.0
         self._bad_in_a_row = 0
 
+    @property
+    def model(self):
+        return self.pipeline.model if self.pipeline is not None else None
+
+    @property
+    def datamanager(self):
+        return self.pipeline.datamanager if self.pipeline is not None else None
+
     # ----------------------------------------------------------------------------------------------- set-up
     def setup(self) -> None:
         cfg = self.config
         cfg.machine.seed_everything()
-        self.datamanager = cfg.pipeline.datamanager.setup(seed=cfg.machine.seed)
-        cfg.pipeline.datamanager.dataparser = self.datamanager.dataparser_config  # config.yml rebuilds the run
-        train_outputs = self.datamanager.train_outputs
-        self.model = cfg.pipeline.model.setup(
-            scene_scale=float(train_outputs.scene_scale),
-            num_train_data=len(self.datamanager.train_dataset),
-            seed_points=self.datamanager.seed_points(),
-        ).to(self.device)
+        self.pipeline = cfg.pipeline.setup(device=self.device, seed=cfg.machine.seed)
         self.model.train()
         self._build_optimizers()
         checkpoint = None
@@ -91,7 +156,7 @@ class Trainer:
         else:
             self.run_dir = self._new_run_dir()
         self.run_dir.mkdir(parents=True, exist_ok=True)
-        save_config(cfg, self.run_dir / "config.yml")
+        save_config(recorded_config(cfg, self.datamanager.dataparser_config), self.run_dir / "config.yml")
         self.datamanager.save_dataparser_transform(self.run_dir / "dataparser_transforms.json")
         if checkpoint is not None:
             self._restore(checkpoint)
@@ -115,11 +180,9 @@ class Trainer:
     def _checkpoint_payload(self, step: int) -> dict[str, Any]:
         return {
             "step": step,
-            "model": {k: v.detach().clone() for k, v in self.model.gauss_params.items()},
+            **self.pipeline.state_dict(),  # model, strategy_state, datamanager (top-level: the format stays readable)
             "optimizers": {k: opt.state_dict() for k, opt in self.optimizers.items()},
             "schedulers": {k: s.state_dict() for k, s in self.schedulers.items()},
-            "strategy_state": dict(self.model.strategy_state),
-            "datamanager": self.datamanager.state_dict(),
             "rng": {
                 "torch": torch.get_rng_state(),
                 "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
@@ -139,16 +202,12 @@ class Trainer:
         return path
 
     def _restore(self, ckpt: dict[str, Any]) -> None:
-        self.model.load_gauss_params(ckpt["model"])
+        self.pipeline.load_state_dict(ckpt, step=int(ckpt["step"]))
         self._build_optimizers()
         for name, state in ckpt["optimizers"].items():
             self.optimizers[name].load_state_dict(state)
         for name, state in ckpt["schedulers"].items():
             self.schedulers[name].load_state_dict(state)
-        self.model.strategy_state = {
-            k: (v.to(self.device) if isinstance(v, torch.Tensor) else v) for k, v in ckpt["strategy_state"].items()
-        }
-        self.datamanager.load_state_dict(ckpt["datamanager"])
         rng = ckpt["rng"]
         torch.set_rng_state(rng["torch"].cpu())
         if rng.get("cuda") is not None and torch.cuda.is_available():
@@ -157,7 +216,6 @@ class Trainer:
         version, internal, gauss = rng["python"]
         random.setstate((version, tuple(internal), gauss))
         self.start_step = int(ckpt["step"])
-        self.model.step = self.start_step
         self._elapsed_offset = float(ckpt.get("elapsed_s", 0.0))
         self._train_s = float(ckpt.get("train_s", 0.0))
 
@@ -169,12 +227,13 @@ class Trainer:
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
 
-    def _tick(self, phase: str, since: float) -> float:
+    def _lap(self, phase: str) -> None:
+        """Charge the time since the previous lap to ``phase`` (synchronized when ``profile_phases``)."""
         if self.config.logging.profile_phases:
             self._sync()
         now = time.perf_counter()
-        self.phase_times[phase] += now - since
-        return now
+        self.phase_times[phase] += now - self._lap_start
+        self._lap_start = now
 
     def _on_sigint(self, signum, frame) -> None:  # noqa: ARG002
         if self._stop_requested:  # a second Ctrl-C aborts at once
@@ -186,7 +245,7 @@ class Trainer:
         self._stop_requested = True
 
     def evaluate(self, step: int) -> dict[str, Any]:
-        result = evaluate_split(self.model, self.datamanager.eval_dataset)
+        result = self.pipeline.get_average_eval_image_metrics()
         record = {"kind": "eval", "step": step, "elapsed_s": self._elapsed(), "train_s": self._train_s,
                   "split": self.config.pipeline.datamanager.eval_split}
         record.update({k: v for k, v in result.items() if k != "per_image"})
@@ -225,56 +284,35 @@ class Trainer:
         bad = [k for (k, _), v in zip(params, peaks.tolist()) if not (math.isfinite(v) and v < GRAD_OVERFLOW)]
         return f"non-finite or overflowing gradient of {bad}"
 
-    @torch.no_grad()
-    def _remove_non_finite_gaussians(self) -> int:
-        params = self.model.gauss_params
-        if all(bool(torch.isfinite(p).all()) for p in params.values()):
-            return 0
-        bad_rows = torch.zeros(len(params["means"]), dtype=torch.bool, device=params["means"].device)
-        for p in params.values():
-            bad_rows |= ~torch.isfinite(p.reshape(len(p), -1)).all(dim=-1)
-        ops.remove(params, self.optimizers, self.model.strategy_state, bad_rows)
-        if len(params["means"]) == 0:
-            raise NoGaussiansLeftError("every Gaussian had non-finite parameters and was removed: nothing left to train")
-        return int(bad_rows.sum())
-
     def train_iteration(self, step: int) -> dict[str, Any]:
         """Take optimization step ``step`` (0-based). Returns the loss dict as floats (empty for a skipped step)."""
         model = self.model
         model.step = step
-        index, camera, image = self.datamanager.next_train()
         bad = None
-        loss_dict: dict[str, torch.Tensor] = {}
-        t = time.perf_counter()
-        removed = self._remove_non_finite_gaussians()
-        t = self._tick("optimizer", t)
-        if removed:
+        self._lap_start = time.perf_counter()
+        removed = model.remove_non_finite_gaussians(self.optimizers)
+        self._lap("optimizer")
+        if removed:  # the step is skipped before its training view is drawn: the view goes to the next step
             bad = f"non-finite parameters: {removed} Gaussians removed"
-            outputs = None
         else:
-            outputs = model.get_outputs(camera)
-            t = self._tick("render", t)
-        if bad is not None:
-            pass
-        elif not bool(torch.isfinite(outputs["rgb"]).all()):
-            bad = "non-finite render"
-        else:
-            loss_dict = model.get_loss_dict(outputs, {"image": image, "image_idx": index})
-            loss = torch.stack(list(loss_dict.values())).sum()
-            t = self._tick("losses", t)
-            if not bool(torch.isfinite(loss)):
-                bad = "non-finite loss (" + ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in loss_dict.items()) + ")"
+            outputs, loss_dict, batch = self.pipeline.get_train_loss_dict(step, lap=self._lap)
+            if loss_dict is None:
+                bad = "non-finite render"
             else:
-                loss.backward()
-                t = self._tick("backward", t)
-                bad = self._grad_problem()
+                loss = torch.stack(list(loss_dict.values())).sum()
+                if not bool(torch.isfinite(loss)):
+                    bad = "non-finite loss (" + ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in loss_dict.items()) + ")"
+                else:
+                    loss.backward()
+                    self._lap("backward")
+                    bad = self._grad_problem()
         if bad is None:
             for optimizer in self.optimizers.values():
                 optimizer.step()
                 optimizer.zero_grad(set_to_none=True)
-            t = self._tick("optimizer", t)
+            self._lap("optimizer")
             report = model.step_post_backward(self.optimizers, step)
-            t = self._tick("density_control", t)
+            self._lap("density_control")
             if any(report.values()):
                 self.writer.write({"kind": "densify", "step": step + 1, "elapsed_s": self._elapsed(),
                                    "train_s": self._train_s, "gaussian_count": model.num_points, **report})
@@ -287,15 +325,16 @@ class Trainer:
         self._bad_in_a_row = 0
         result = {k: float(v.detach()) for k, v in loss_dict.items()}
         result["loss"] = sum(result.values())
-        self._last_outputs, self._last_batch = outputs, {"image": image, "image_idx": index}
+        self._last_outputs, self._last_batch = outputs, batch
         return result
 
     # ----------------------------------------------------------------------------------------------- the loop
     def train(self) -> Path:
         """Run (or resume) training; returns the run folder."""
-        if self.model is None:
+        if self.pipeline is None:
             self.setup()
         cfg = self.config
+        # (no warnings.catch_warnings around the loop: mutating filters re-enables once-only warnings every step)
         self.writer = MetricsWriter(self.run_dir / "metrics.jsonl")
         self._t0 = time.perf_counter()
         in_main_thread = threading.current_thread() is threading.main_thread()
@@ -303,28 +342,27 @@ class Trainer:
         bar = ProgressBar(cfg.max_num_iterations, self.start_step, enabled=cfg.logging.progress_bar)
         step = self.start_step
         try:
-            if True:  # (no warnings.catch_warnings here: mutating filters re-enables once-only warnings every step)
-                if step == 0 and 0 in cfg.eval_at_steps:
-                    self.evaluate(0)
-                losses: dict[str, float] = {}
-                while step < cfg.max_num_iterations and not self._stop_requested:
-                    t_step = time.perf_counter()
-                    losses = self.train_iteration(step)
-                    self._train_s += time.perf_counter() - t_step
-                    step += 1
-                    if losses and step % cfg.logging.steps_per_log == 0:
-                        self._log_train(step, losses)
-                    bar.update(step, losses.get("loss"), self.model.num_points)
-                    if self._should_eval(step):
-                        self.evaluate(step)
-                    if step % cfg.steps_per_save == 0 or step == cfg.max_num_iterations:
-                        self.save_checkpoint(step)
-                if self._stop_requested and step < cfg.max_num_iterations:
-                    self.interrupted = True
-                    path = self.save_checkpoint(step)
-                    bar.close()
-                    print(f"interrupted at step {step}: checkpoint saved to {path}; resume with --load-dir {path.parent}")
-                    return self.run_dir
+            if step == 0 and 0 in cfg.eval_at_steps:
+                self.evaluate(0)
+            losses: dict[str, float] = {}
+            while step < cfg.max_num_iterations and not self._stop_requested:
+                t_step = time.perf_counter()
+                losses = self.train_iteration(step)
+                self._train_s += time.perf_counter() - t_step
+                step += 1
+                if losses and step % cfg.logging.steps_per_log == 0:
+                    self._log_train(step, losses)
+                bar.update(step, losses.get("loss"), self.model.num_points)
+                if self._should_eval(step):
+                    self.evaluate(step)
+                if step % cfg.steps_per_save == 0 or step == cfg.max_num_iterations:
+                    self.save_checkpoint(step)
+            if self._stop_requested and step < cfg.max_num_iterations:
+                self.interrupted = True
+                path = self.save_checkpoint(step)
+                bar.close()
+                print(f"interrupted at step {step}: checkpoint saved to {path}; resume with --load-dir {path.parent}")
+                return self.run_dir
             bar.update(step, losses.get("loss") if losses else None, self.model.num_points, force=True)
             bar.close()
         finally:
@@ -336,9 +374,17 @@ class Trainer:
     def _log_train(self, step: int, losses: dict[str, float]) -> None:
         record: dict[str, Any] = {"kind": "train", "step": step, "elapsed_s": self._elapsed(), "train_s": self._train_s}
         record.update(losses)
-        metrics = self.model.get_metrics_dict(self._last_outputs, self._last_batch, with_kurtosis=True)
+        metrics = self.pipeline.get_train_metrics_dict(self._last_outputs, self._last_batch)
         record.update(metrics)
         record["lr_means"] = self.optimizers["means"].param_groups[0]["lr"]
         record["sh_degree"] = self.model.sh_degree_to_use()
         record["train_downscale"] = self.model.get_downscale_factor()
         self.writer.write(record)
+
+
+def recorded_config(config: TrainerConfig, dataparser_config: Any) -> TrainerConfig:
+    """What ``config.yml`` records: the user's config with the dataparser it resolved to (so the run can be rebuilt
+    whatever the detection would say later), as a copy: the user's config object is left as given."""
+    recorded = copy.deepcopy(config)
+    recorded.pipeline.datamanager.dataparser = dataparser_config
+    return recorded

@@ -18,7 +18,8 @@ import torch.nn.functional as F
 
 from kc_splatfacto.data.outputs import Cameras
 from kc_splatfacto.model.gaussians import init_gaussian_params
-from kc_splatfacto.model.strategy import DefaultStrategy
+from kc_splatfacto.model import ops
+from kc_splatfacto.model.strategy import DefaultStrategy, NoGaussiansLeftError
 
 EVAL_BACKGROUND = (0.1490, 0.1647, 0.2157)
 """Splatfacto's fixed background outside training when training uses random backgrounds (viser's grey)"""
@@ -226,6 +227,21 @@ class SplatfactoModel(torch.nn.Module):
             if key not in state:
                 raise KeyError(f"checkpoint has no Gaussian parameter '{name}'")
             self.gauss_params[name] = torch.nn.Parameter(state[key].detach().clone().to(device))
+
+    @torch.no_grad()
+    def remove_non_finite_gaussians(self, optimizers: dict[str, torch.optim.Optimizer]) -> int:
+        """Remove every Gaussian with a non-finite parameter (with its optimizer state and density-control
+        statistics); returns how many were removed. Raises NoGaussiansLeftError when none would be left."""
+        params = self.gauss_params
+        if all(bool(torch.isfinite(p).all()) for p in params.values()):
+            return 0
+        bad_rows = torch.zeros(len(params["means"]), dtype=torch.bool, device=params["means"].device)
+        for p in params.values():
+            bad_rows |= ~torch.isfinite(p.reshape(len(p), -1)).all(dim=-1)
+        ops.remove(params, optimizers, self.strategy_state, bad_rows)
+        if len(params["means"]) == 0:
+            raise NoGaussiansLeftError("every Gaussian had non-finite parameters and was removed: nothing left to train")
+        return int(bad_rows.sum())
 
     def _fixed_background(self) -> torch.Tensor:
         colors = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0), "random": EVAL_BACKGROUND}
