@@ -1,5 +1,5 @@
 """Are two training runs bit-identical? Compares the final checkpoints (every tensor with ``torch.equal``, every other
-value with ``==``) and ``metrics.jsonl`` (every record, wall-clock fields and paths left out).
+value with ``==``) and ``metrics.jsonl`` (every record; wall-clock fields, render speed and paths left out).
 
 Used to show that a refactor changes no numerics::
 
@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 #: fields that measure time or name a place, not the numerics
-VOLATILE = {"elapsed_s", "train_s", "path"}
+VOLATILE = {"elapsed_s", "train_s", "render_fps", "path"}
 
 
 def _differences(a: Any, b: Any, where: str) -> Iterator[str]:
