@@ -45,23 +45,22 @@ def test_images_are_uint8_lazy_and_match_the_files(tmp_path):
         dataset.image_uint8(3)
 
 
-def test_rgba_is_composited_over_the_background_and_alpha_kept_as_mask(tmp_path):
+def test_rgba_keeps_its_alpha_for_the_model_to_composite(tmp_path):
+    from kc_splatfacto.model.splatfacto import composite_with_background
+
     rng = np.random.default_rng(1)
     rgba = rng.integers(0, 256, size=(8, 10, 4), dtype=np.uint8)
     rgba[0, 0, 3], rgba[0, 1, 3] = 0, 255
     path = write_png(tmp_path / "rgba.png", rgba)
-    background = (0.2, 0.5, 1.0)
-    dataset = ImageDataset(outputs_for([path], 10, 8), background=background, alpha_as_mask=True)
+    dataset = ImageDataset(outputs_for([path], 10, 8))
+    got = dataset.image_uint8(0)
+    assert got.shape == (8, 10, 4) and np.array_equal(got.numpy(), rgba)  # the file's straight alpha, untouched
+    assert dataset.mask(0) is None  # alpha is not a mask: it is composited
+    background = torch.tensor([0.2, 0.5, 1.0])
+    composited = composite_with_background(dataset.image_float(0).double(), background.double()).numpy()
     a = rgba[..., 3:4] / 255.0
-    expected = np.round((rgba[..., :3] / 255.0 * a + np.array(background) * (1 - a)) * 255)
-    got = dataset.image_uint8(0).numpy().astype(float)
-    assert got.shape == (8, 10, 3)
-    assert np.abs(got - expected).max() <= 1  # float32 vs float64 rounding at most one level
-    assert np.array_equal(got[0, 0], np.round(np.array(background) * 255))
-    mask = dataset.mask(0)
-    assert mask.dtype == torch.bool and mask.shape == (8, 10, 1)
-    assert np.array_equal(mask.numpy(), rgba[..., 3:4] > 127)
-    assert ImageDataset(outputs_for([path], 10, 8)).mask(0) is None
+    np.testing.assert_allclose(composited, rgba[..., :3] / 255.0 * a + np.array([0.2, 0.5, 1.0]) * (1 - a), atol=1e-7)
+    assert np.allclose(composited[0, 0], [0.2, 0.5, 1.0])
 
 
 def test_gray_and_16_bit_images_become_rgb_uint8(tmp_path):
@@ -96,9 +95,3 @@ def test_image_of_the_wrong_size_for_its_camera_is_an_error(tmp_path):
     path = write_png(tmp_path / "small.png", np.zeros((6, 6, 3), np.uint8))
     with pytest.raises(DataParserError, match="small.png is 6x6 but its camera expects 10x8"):
         ImageDataset(outputs_for([path], 10, 8)).image_uint8(0)
-
-
-def test_bad_background_is_rejected(tmp_path):
-    path = write_png(tmp_path / "a.png", np.zeros((8, 10, 3), np.uint8))
-    with pytest.raises(DataParserError, match="background"):
-        ImageDataset(outputs_for([path], 10, 8), background=(0.0, 2.0, 0.0))

@@ -295,7 +295,7 @@ def test_blender_style_camera_angle_x_with_rgba_images(tmp_path):
     expected_k = torch.tensor([[focal, 0, 20.0], [0, focal, 15.0], [0, 0, 1]], dtype=torch.float32)
     assert torch.allclose(outputs.cameras.Ks[0], expected_k)
     assert int(outputs.cameras.widths[0]) == 40 and int(outputs.cameras.heights[0]) == 30
-    dataset = ImageDataset(outputs, background=(1.0, 1.0, 1.0), alpha_as_mask=True)
-    image = dataset.image_uint8(1)
-    assert image[0, 0].tolist() == [255, 255, 255] and image[15, 20].tolist() == [0, 0, 255]
-    assert int(dataset.mask(1).sum()) == 200
+    dataset = ImageDataset(outputs)
+    image = dataset.image_uint8(1)  # RGBA kept: the model composites it over the background it renders with
+    assert image[0, 0].tolist() == [0, 0, 0, 0] and image[15, 20].tolist() == [0, 0, 255, 255]
+    assert int((image[..., 3] > 127).sum()) == 200 and dataset.mask(1) is None

@@ -1,11 +1,12 @@
-"""Photometric terms against independent numpy / scipy implementations."""
+"""Photometric loss terms and metrics (kc_splatfacto.metrics) against independent numpy / scipy implementations."""
 
 import numpy as np
 import pytest
 import scipy.ndimage
 import torch
 
-from kc_splatfacto.losses import dssim, l1, psnr, ssim
+from kc_splatfacto.losses import dssim, l1
+from kc_splatfacto.metrics import mean_ssim, psnr, ssim
 
 
 def reference_ssim(x: np.ndarray, y: np.ndarray, window: int = 11, sigma: float = 1.5) -> float:
@@ -37,9 +38,12 @@ def image_pair():
 
 def test_ssim_matches_reference(image_pair):
     pred, gt = image_pair
-    ours = ssim(torch.tensor(pred), torch.tensor(gt))
+    ssim_map = ssim(torch.tensor(pred), torch.tensor(gt))
+    assert ssim_map.shape == pred.shape  # kornia's meaning: the map
+    ours = mean_ssim(torch.tensor(pred), torch.tensor(gt))
     assert ours.dim() == 0
     np.testing.assert_allclose(float(ours), reference_ssim(pred, gt), rtol=1e-6)
+    np.testing.assert_allclose(float(ssim_map.mean()), float(ours), rtol=1e-12)
 
 
 def test_ssim_on_real_photo(castle_p30):
@@ -48,7 +52,7 @@ def test_ssim_on_real_photo(castle_p30):
     with Image.open(castle_p30 / "images" / "0000.jpg") as img:
         gt = np.asarray(img.convert("RGB").resize((128, 96)), dtype=np.float32).transpose(2, 0, 1)[None] / 255.0
     pred = scipy.ndimage.uniform_filter(gt, size=(1, 1, 3, 3), mode="mirror")
-    ours = float(ssim(torch.tensor(pred), torch.tensor(gt)))
+    ours = float(mean_ssim(torch.tensor(pred), torch.tensor(gt)))
     np.testing.assert_allclose(ours, reference_ssim(pred.astype(np.float64), gt.astype(np.float64)), rtol=1e-4)
     assert 0.3 < ours < 0.99
 
@@ -57,14 +61,14 @@ def test_dssim_is_one_minus_ssim_not_kornia_loss(image_pair):
     from kornia.losses import ssim_loss
 
     pred, gt = (torch.tensor(a) for a in image_pair)
-    torch.testing.assert_close(dssim(pred, gt), 1 - ssim(pred, gt))
+    torch.testing.assert_close(dssim(pred, gt), 1 - mean_ssim(pred, gt))
     # kornia's ssim_loss is (1 - SSIM) / 2: half of Splatfacto's term
     torch.testing.assert_close(ssim_loss(pred, gt, 11), dssim(pred, gt) / 2)
 
 
 def test_ssim_of_identical_images_is_one(image_pair):
     _, gt = image_pair
-    np.testing.assert_allclose(float(ssim(torch.tensor(gt), torch.tensor(gt))), 1.0, atol=1e-9)
+    np.testing.assert_allclose(float(mean_ssim(torch.tensor(gt), torch.tensor(gt))), 1.0, atol=1e-9)
 
 
 def test_psnr_matches_numpy(image_pair):
@@ -90,7 +94,7 @@ def test_ssim_is_differentiable_and_gradient_matches_finite_difference():
     assert torch.autograd.gradcheck(lambda p: dssim(p, gt), (pred,), eps=1e-6, atol=1e-7)
 
 
-@pytest.mark.parametrize("fn", [l1, ssim, dssim, psnr])
+@pytest.mark.parametrize("fn", [l1, ssim, mean_ssim, dssim, psnr])
 def test_shape_mismatch_raises(fn):
     with pytest.raises(ValueError, match="same shape"):
         fn(torch.rand(1, 3, 32, 32), torch.rand(1, 3, 32, 31))
@@ -99,3 +103,32 @@ def test_shape_mismatch_raises(fn):
 def test_ssim_too_small_image_raises():
     with pytest.raises(ValueError, match="too small"):
         ssim(torch.rand(1, 3, 5, 40), torch.rand(1, 3, 5, 40))
+
+
+def test_masked_psnr_counts_only_the_masked_pixels(image_pair):
+    pred, gt = image_pair
+    mask = np.zeros((2, 1, 40, 33), bool)
+    mask[:, :, 5:30, 3:20] = True
+    garbage = pred.copy()
+    garbage[np.broadcast_to(~mask, pred.shape)] = 7.0  # outside the mask: ignored
+    selected = np.broadcast_to(mask, pred.shape)
+    expected = 10 * np.log10(1.0 / np.mean((pred[selected] - gt[selected]) ** 2))
+    got = psnr(torch.tensor(garbage), torch.tensor(gt), mask=torch.tensor(mask))
+    np.testing.assert_allclose(float(got), expected, rtol=1e-6)
+
+
+def test_masked_mean_ssim_is_the_map_mean_over_the_mask(image_pair):
+    pred, gt = (torch.tensor(a) for a in image_pair)
+    mask = torch.zeros(2, 1, 40, 33, dtype=torch.bool)
+    mask[:, :, 10:25, 8:30] = True
+    ssim_map = ssim(pred, gt).numpy()
+    expected = ssim_map[np.broadcast_to(mask.numpy(), ssim_map.shape)].mean()
+    np.testing.assert_allclose(float(mean_ssim(pred, gt, mask=mask)), expected, rtol=1e-10)
+
+
+def test_a_mask_that_selects_nothing_or_has_the_wrong_shape_is_an_error(image_pair):
+    pred, gt = (torch.tensor(a) for a in image_pair)
+    with pytest.raises(ValueError, match="selects no pixel"):
+        psnr(pred, gt, mask=torch.zeros(2, 1, 40, 33, dtype=torch.bool))
+    with pytest.raises(ValueError, match="mask must be"):
+        mean_ssim(pred, gt, mask=torch.ones(2, 3, 40, 33, dtype=torch.bool))

@@ -35,13 +35,14 @@ def write_side_by_side(model, dataset, out_dir: Path) -> list[Path]:
     import numpy as np
 
     from kc_splatfacto.cli.eval import render_view
+    from kc_splatfacto.model.splatfacto import composite_with_background
 
     out_dir.mkdir(parents=True, exist_ok=True)
     filenames = getattr(getattr(dataset, "outputs", None), "image_filenames", None)
     paths = []
     for i in range(len(dataset)):
         rgb, _ = render_view(model, dataset.cameras, i)
-        gt = dataset.image_float(i)
+        gt = composite_with_background(dataset.image_float(i), model.background_color)  # RGBA as evaluated
         stem = Path(filenames[i]).stem if filenames is not None else "view"
         path = out_dir / f"{i:03d}_{stem}.png"
         if not cv2.imwrite(str(path), np.concatenate([to_uint8_bgr(rgb), to_uint8_bgr(gt)], axis=1)):
@@ -101,6 +102,7 @@ def write_diagnostics(loaded, out_dir: Path, views: list[int]) -> list[Path]:
     from kc_splatfacto.cli.eval import render_view
     from kc_splatfacto.engine.diagnostics import plot_kurtosis_history, save_view_diagnostics
     from kc_splatfacto.engine.report import read_metrics_jsonl
+    from kc_splatfacto.model.splatfacto import composite_with_background
 
     paths = []
     dataset = loaded.test_dataset
@@ -109,7 +111,8 @@ def write_diagnostics(loaded, out_dir: Path, views: list[int]) -> list[Path]:
             raise ValueError(f"kc-render: --diagnostic-views index {i} is outside the test split (0..{len(dataset) - 1})")
         rgb, _ = render_view(loaded.model, dataset.cameras, i)
         paths.append(
-            save_view_diagnostics(rgb, dataset.image_float(i), out_dir / f"view_{i:03d}_wavelets.png",
+            save_view_diagnostics(rgb, composite_with_background(dataset.image_float(i), loaded.model.background_color),
+                                  out_dir / f"view_{i:03d}_wavelets.png",
                                   title=f"test view {i}, step {loaded.step}")
         )
     log = Path(loaded.run_dir) / "metrics.jsonl"

@@ -1,13 +1,11 @@
 """Images of one split, decoded lazily and kept as uint8 (nerfstudio's ``cache_images_type="uint8"``).
 
-Only the split's files are ever read; each image is decoded on first access and cached. RGBA images are composited
-over ``background`` (in [0,1], per channel) and their alpha is kept as a mask when ``alpha_as_mask`` is set; masks
-from ``DataparserOutputs.mask_filenames`` take precedence.
+Only the split's files are ever read; each image is decoded on first access and cached. RGBA images keep their alpha
+channel: the model composites them over the background it renders with (nerfstudio's ``composite_with_background``),
+which the data layer cannot know. Masks come from ``DataparserOutputs.mask_filenames``.
 """
 
 from __future__ import annotations
-
-from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -17,39 +15,20 @@ from kc_splatfacto.data.images import read_image
 from kc_splatfacto.data.outputs import Cameras, DataparserOutputs
 
 
-def composite_over_background(rgba: np.ndarray, background: Sequence[float]) -> np.ndarray:
-    """[H,W,4] uint8 -> [H,W,3] uint8: ``rgb * a + background * (1 - a)`` in float, rounded to nearest."""
-    rgb = rgba[..., :3].astype(np.float32) / 255.0
-    alpha = rgba[..., 3:4].astype(np.float32) / 255.0
-    out = rgb * alpha + np.asarray(background, np.float32) * (1.0 - alpha)
-    return np.round(np.clip(out, 0.0, 1.0) * 255.0).astype(np.uint8)
-
-
 class ImageDataset:
-    """The split's images and cameras.
+    """The split's images, masks and cameras.
 
     Args:
         outputs: one split of a dataparser.
-        background: RGB in [0,1] that RGBA images are composited over.
-        alpha_as_mask: keep the alpha channel of RGBA images as a [H,W,1] bool mask (alpha > 0.5).
     """
 
-    def __init__(
-        self,
-        outputs: DataparserOutputs,
-        background: Sequence[float] = (0.0, 0.0, 0.0),
-        alpha_as_mask: bool = False,
-    ):
+    def __init__(self, outputs: DataparserOutputs):
         if len(outputs.image_filenames) != len(outputs.cameras):
             raise DataParserError(
                 f"{len(outputs.image_filenames)} image files but {len(outputs.cameras)} cameras in split "
                 f"'{outputs.split}': the dataparser must return one camera per image"
             )
-        if len(background) != 3 or not all(0.0 <= float(c) <= 1.0 for c in background):
-            raise DataParserError(f"background must be 3 values in [0, 1], got {tuple(background)}")
         self.outputs = outputs
-        self.background = tuple(float(c) for c in background)
-        self.alpha_as_mask = alpha_as_mask
         self._images: dict[int, torch.Tensor] = {}
         self._masks: dict[int, torch.Tensor | None] = {}
 
@@ -84,10 +63,6 @@ class ImageDataset:
                 "the file changed since parsing or belongs to another camera"
             )
         mask = None
-        if image.shape[2] == 4:
-            if self.alpha_as_mask:
-                mask = torch.from_numpy(image[..., 3:4] > 127)
-            image = composite_over_background(image, self.background)
         if self.outputs.mask_filenames is not None:
             mask_path = self.outputs.mask_filenames[i]
             mask_image = read_image(mask_path)
@@ -100,14 +75,14 @@ class ImageDataset:
         self._masks[i] = mask
 
     def image_uint8(self, i: int) -> torch.Tensor:
-        """[H,W,3] uint8 image ``i`` (decoded on first use, then cached)."""
+        """[H,W,C] uint8 image ``i``, C = 3 (RGB) or 4 (RGBA, straight alpha); decoded on first use, then cached."""
         i = self._index(i)
         if i not in self._images:
             self._load(i)
         return self._images[i]
 
     def image_float(self, i: int) -> torch.Tensor:
-        """[H,W,3] float32 image ``i`` in [0,1]."""
+        """[H,W,C] float32 image ``i`` in [0,1] (C as :meth:`image_uint8`)."""
         return self.image_uint8(i).to(torch.float32) / 255.0
 
     def mask(self, i: int) -> torch.Tensor | None:
@@ -118,7 +93,8 @@ class ImageDataset:
         return self._masks[i]
 
     def __getitem__(self, i: int) -> dict:
-        """nerfstudio-style item: ``{"image_idx", "image" (uint8 [H,W,3]), "mask" (optional)}``."""
+        """nerfstudio's item, the batch the model reads: ``image_idx``, ``image`` (uint8 [H,W,3|4]) and ``mask``
+        ([H,W,1] bool, only when the split has masks)."""
         item = {"image_idx": self._index(i), "image": self.image_uint8(i)}
         mask = self.mask(i)
         if mask is not None:

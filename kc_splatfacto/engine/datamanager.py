@@ -80,13 +80,14 @@ class DataManager:
         return torch.as_tensor(xyz).float(), self.train_outputs.points3d_rgb
 
     def next_train(self) -> dict[str, Any]:
-        """The next training batch: ``image_idx`` (int), ``camera`` (Cameras of length 1), ``image`` [H, W, 3] uint8."""
+        """The next training batch: ``image_idx`` (int), ``camera`` (Cameras of length 1), ``image`` [H, W, 3|4]
+        uint8 (RGBA keeps its alpha: the model composites it over its background) and ``mask`` [H, W, 1] bool when
+        the scene has masks."""
         if not self._unseen:
             self._unseen = list(range(len(self.train_dataset)))
             self._rng.shuffle(self._unseen)
         index = self._unseen.pop(0)
-        return {"image_idx": index, "camera": self.train_dataset.cameras[index],
-                "image": self.train_dataset.image_uint8(index)}
+        return {**self.train_dataset[index], "camera": self.train_dataset.cameras[index]}
 
     def state_dict(self) -> dict[str, Any]:
         return {"rng": self._rng.getstate(), "unseen": list(self._unseen)}

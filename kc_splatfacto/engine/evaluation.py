@@ -1,8 +1,9 @@
 """Evaluation of a split: PSNR and SSIM per image and their means; LPIPS only where its weights exist offline.
 
 SSIM convention: kornia's Gaussian-window SSIM (window 11, sigma 1.5, reflect 'same' padding), averaged over the image, as
-``kc_splatfacto.losses.photometric.ssim`` computes it (nerfstudio's torchmetrics SSIM uses 'valid' windows instead; the
-two differ slightly near borders).
+``kc_splatfacto.metrics.mean_ssim`` computes it (nerfstudio's torchmetrics SSIM uses 'valid' windows instead; the
+two differ slightly near borders). The model compares each view (``SplatfactoModel.get_image_metrics``): RGBA ground
+truth composited over the render's background, and PSNR / SSIM over the view's mask when it has one.
 """
 
 from __future__ import annotations
@@ -61,8 +62,6 @@ def evaluate_split(model, dataset, *, with_lpips: bool = True) -> dict[str, Any]
         (the reason, when None), ``num_images``, ``render_fps``, ``ssim_convention`` and ``per_image``: a list of
         ``{"index", "image", "psnr", "ssim", "lpips"}``.
     """
-    from kc_splatfacto.losses.photometric import psnr, ssim
-
     if len(dataset) == 0:
         raise ValueError("evaluate_split: the dataset is empty (no images in this split)")
     lpips_fn, lpips_reason = lpips_metric() if with_lpips else (None, "not requested")
@@ -76,15 +75,15 @@ def evaluate_split(model, dataset, *, with_lpips: bool = True) -> dict[str, Any]
             t0 = time.perf_counter()
             outputs = model.get_outputs(camera)
             render_time += time.perf_counter() - t0
-            pred = outputs["rgb"].permute(2, 0, 1)[None].float()
-            gt = dataset.image_float(index).to(pred.device).permute(2, 0, 1)[None]
-            if pred.shape != gt.shape:
-                raise ValueError(f"image {index}: render {tuple(pred.shape)} and ground truth {tuple(gt.shape)} differ")
+            try:
+                metrics, (pred, gt) = model.get_image_metrics(outputs, dataset[index])
+            except ValueError as exc:
+                raise ValueError(f"image {index} ({_image_name(dataset, index)}): {exc}") from exc
             record = {
                 "index": index,
                 "image": _image_name(dataset, index),
-                "psnr": float(psnr(pred, gt)),
-                "ssim": float(ssim(pred, gt)),
+                "psnr": metrics["psnr"],
+                "ssim": metrics["ssim"],
                 "lpips": float(lpips_fn(pred, gt)) if lpips_fn is not None else None,
             }
             per_image.append(record)

@@ -1,4 +1,6 @@
-"""Loss layer: differentiable DWT, frequency-domain losses (wavelet L1, KC, CBC) and photometric losses."""
+"""Loss layer: differentiable DWT, frequency-domain losses (wavelet L1, KC, CBC) and photometric losses.
+
+Metrics (PSNR, SSIM) are in :mod:`kc_splatfacto.metrics`."""
 
 from kc_splatfacto.losses.frequency import (
     WEIGHTINGS,
@@ -15,7 +17,7 @@ from kc_splatfacto.losses.frequency import (
     prepare_target,
     wavelet_l1,
 )
-from kc_splatfacto.losses.photometric import dssim, l1, psnr, ssim
+from kc_splatfacto.losses.photometric import dssim, l1
 from kc_splatfacto.losses.wavelets import MODES, WaveletCoeffs, daubechies_filters, dwt2, dwt_max_level
 
 __all__ = [
@@ -38,7 +40,5 @@ __all__ = [
     "l1",
     "level_weights",
     "prepare_target",
-    "psnr",
-    "ssim",
     "wavelet_l1",
 ]

@@ -116,6 +116,36 @@ def resize_image(image: torch.Tensor, d: int) -> torch.Tensor:
     return F.avg_pool2d(image.permute(2, 0, 1)[None], kernel_size=d, stride=d)[0].permute(1, 2, 0)
 
 
+def _bchw(image: torch.Tensor) -> torch.Tensor:
+    """[H, W, C] -> [1, C, H, W] (a view)."""
+    return image.permute(2, 0, 1)[None]
+
+
+def downscale_mask(mask: torch.Tensor, d: int) -> torch.Tensor:
+    """[H, W, 1] bool -> [H // d, W // d, 1] float: 1 where all d x d pixels are set (a min-pool), else 0."""
+    mask = mask.float()
+    if d == 1:
+        return mask
+    return -F.max_pool2d(-mask.permute(2, 0, 1)[None], kernel_size=d, stride=d)[0].permute(1, 2, 0)
+
+
+def composite_with_background(
+    image: torch.Tensor, background: torch.Tensor, premultiplied: bool = False
+) -> torch.Tensor:
+    """[H, W, 4] RGBA -> [H, W, 3] ``rgb * a + background * (1 - a)`` (``rgb`` already times ``a`` when
+    ``premultiplied``); [H, W, 3] is returned as is.
+
+    nerfstudio's ``composite_with_background``: the GT is composited over the background the render used.
+    """
+    if image.shape[-1] == 3:
+        return image
+    if image.shape[-1] != 4:
+        raise ValueError(f"ground truth must be [H, W, 3] or [H, W, 4] (RGBA), got {tuple(image.shape)}")
+    alpha = image[..., 3:4]
+    rgb = image[..., :3] if premultiplied else image[..., :3] * alpha
+    return rgb + background.to(image) * (1.0 - alpha)
+
+
 def rescale_cameras(camera: Cameras, d: int) -> Cameras:
     """Cameras rendering 1/d of the resolution (intrinsics scaled, sizes floored as nerfstudio does)."""
     if d == 1:
@@ -316,10 +346,47 @@ class SplatfactoModel(torch.nn.Module):
         return {"rgb": rgb, "depth": depth, "accumulation": alpha, "background": background}
 
     def get_gt_img(self, image: torch.Tensor) -> torch.Tensor:
-        """[H, W, 3] uint8 or float -> float32 in [0, 1] at the current training resolution, on the model's device."""
+        """[H, W, C] uint8 or float -> float32 in [0, 1] at the current training resolution, on the model's device.
+
+        C = 3, or 4 (straight alpha in, *premultiplied* alpha out: colours are multiplied by alpha before the box
+        downscale, so a transparent pixel's colour never leaks into its neighbours; see :func:`composite_with_background`).
+        """
         image = image.to(self.device)
         image = image.float() / 255.0 if image.dtype == torch.uint8 else image.float()
+        if image.shape[-1] == 4:
+            image = torch.cat([image[..., :3] * image[..., 3:4], image[..., 3:4]], dim=-1)
         return resize_image(image, self.get_downscale_factor())
+
+    def get_gt_and_mask(
+        self, outputs: dict[str, Any], batch: dict[str, Any]
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The ground truth the render is compared with, and where.
+
+        The GT (RGBA: composited over ``outputs["background"]``, the background this render used, as nerfstudio
+        does) at the render's resolution [h, w, 3], and ``batch["mask"]`` at that resolution as [h, w, 1] float
+        (None without a mask). A low-resolution pixel counts only when every full-resolution pixel it averages does
+        (a min-pool), so no masked-out pixel ever reaches a loss or a metric.
+        """
+        gt_img = composite_with_background(self.get_gt_img(batch["image"]), outputs["background"], premultiplied=True)
+        mask = batch.get("mask")
+        if mask is not None:
+            mask = downscale_mask(mask.to(self.device), self.get_downscale_factor())
+            if mask.shape[:2] != gt_img.shape[:2]:
+                raise ValueError(f"mask {tuple(mask.shape)} and ground truth {tuple(gt_img.shape)} differ in size")
+        return gt_img, mask
+
+    def _masked_pair(
+        self, outputs: dict[str, Any], batch: dict[str, Any]
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """(pred, gt, mask) as [h, w, 3], [h, w, 3], [h, w, 1] or None; with a mask both images are multiplied by
+        it (nerfstudio's masking: every term then compares zeros outside the mask)."""
+        gt_img, mask = self.get_gt_and_mask(outputs, batch)
+        pred_img = outputs["rgb"]
+        if gt_img.shape != pred_img.shape:
+            raise ValueError(f"render {tuple(pred_img.shape)} and ground truth {tuple(gt_img.shape)} differ in size")
+        if mask is not None:
+            gt_img, pred_img = gt_img * mask, pred_img * mask
+        return pred_img, gt_img, mask
 
     # ----------------------------------------------------------------------------------------------- losses
     @property
@@ -345,9 +412,9 @@ class SplatfactoModel(torch.nn.Module):
             )
         return self._frequency_loss
 
-    def wavelet_target(self, gt_img: torch.Tensor, image_idx: int | None) -> Any:
-        """The GT's wavelet coefficients and statistics, computed once per (training image, resolution)."""
-        gt_bchw = gt_img.permute(2, 0, 1)[None]
+    def wavelet_target(self, gt_bchw: torch.Tensor, image_idx: int | None) -> Any:
+        """The (masked, composited) GT's wavelet coefficients and statistics [1, 3, h, w], computed once per
+        (training image, resolution); ``image_idx`` None: not cached."""
         if image_idx is None:
             return self.frequency_loss.prepare_target(gt_bchw)
         key = (int(image_idx), self.get_downscale_factor())
@@ -360,20 +427,20 @@ class SplatfactoModel(torch.nn.Module):
         """Splatfacto's ``main_loss`` = (1 - ssim_lambda) L1 + ssim_lambda (1 - SSIM); ``scale_reg`` when enabled;
         ``wavelet_loss`` / ``kc_loss`` / ``cbc_loss`` (already weighted) only when their weight is non-zero.
 
+        Every term compares ``pred * mask`` with ``gt * mask`` (see :meth:`_masked_pair`; docs/losses.md says what
+        that means for the band statistics), the GT composited over the render's background.
+
         Args:
             outputs: from :meth:`get_outputs`.
-            batch: ``image`` [H, W, 3] (uint8 or float, full resolution) and ``image_idx`` (int, the cache key).
+            batch: ``image`` [H, W, 3|4] (uint8 or float, full resolution), ``image_idx`` (int, the cache key) and
+                optionally ``mask`` [H, W, 1] (bool, True = use the pixel).
         """
-        from kc_splatfacto.losses.photometric import ssim
+        from kc_splatfacto.losses.photometric import dssim
 
-        gt_img = self.get_gt_img(batch["image"])
-        pred_img = outputs["rgb"]
-        if gt_img.shape != pred_img.shape:
-            raise ValueError(f"render {tuple(pred_img.shape)} and ground truth {tuple(gt_img.shape)} differ in size")
+        pred_img, gt_img, _ = self._masked_pair(outputs, batch)
         l1 = torch.abs(gt_img - pred_img).mean()
-        pred_bchw = pred_img.permute(2, 0, 1)[None]
-        gt_bchw = gt_img.permute(2, 0, 1)[None]
-        sim_loss = 1 - ssim(pred_bchw, gt_bchw)
+        pred_bchw, gt_bchw = _bchw(pred_img), _bchw(gt_img)
+        sim_loss = dssim(pred_bchw, gt_bchw)
         lam = self.config.ssim_lambda
         loss_dict = {"main_loss": (1 - lam) * l1 + lam * sim_loss}
         if self.config.use_scale_regularization:
@@ -386,9 +453,14 @@ class SplatfactoModel(torch.nn.Module):
                 loss_dict["scale_reg"] = torch.zeros((), device=self.device)
         frequency_loss = self.frequency_loss
         if frequency_loss is not None:
-            target = self.wavelet_target(gt_img, batch.get("image_idx"))
+            target = self.wavelet_target(gt_bchw, batch.get("image_idx") if self._gt_is_fixed(batch) else None)
             loss_dict.update(frequency_loss(pred_bchw, target))
         return loss_dict
+
+    def _gt_is_fixed(self, batch: dict[str, Any]) -> bool:
+        """Whether the composited GT is the same at every visit (so its wavelet target may be cached): RGB, or RGBA
+        over a fixed background; an RGBA image over a random background changes with every draw."""
+        return batch["image"].shape[-1] == 3 or not (self.training and self.config.background_color == "random")
 
     @torch.no_grad()
     def get_metrics_dict(
@@ -396,18 +468,31 @@ class SplatfactoModel(torch.nn.Module):
     ) -> dict[str, Any]:
         """``psnr`` and ``gaussian_count``; with ``with_kurtosis`` (logging steps only: two DWTs) also
         ``kurtosis_render`` / ``kurtosis_gt``: per detail band (finest level first, H V D), channel-averaged."""
-        from kc_splatfacto.losses.photometric import psnr
+        from kc_splatfacto.metrics import psnr
 
-        gt_img = self.get_gt_img(batch["image"])
-        pred_img = outputs["rgb"]
+        pred_img, gt_img, mask = self._masked_pair(outputs, batch)
         metrics: dict[str, Any] = {
-            "psnr": float(psnr(pred_img.permute(2, 0, 1)[None], gt_img.permute(2, 0, 1)[None])),
+            "psnr": float(psnr(_bchw(pred_img), _bchw(gt_img), mask=None if mask is None else _bchw(mask))),
             "gaussian_count": self.num_points,
         }
         if with_kurtosis:
+            cached = self._cached_wavelet_target(batch.get("image_idx")) if self._gt_is_fixed(batch) else None
             metrics["kurtosis_render"] = self.band_kurtosis(pred_img)
-            metrics["kurtosis_gt"] = self.band_kurtosis(self._cached_wavelet_target(batch.get("image_idx")) or gt_img)
+            metrics["kurtosis_gt"] = self.band_kurtosis(cached or gt_img)
         return metrics
+
+    @torch.no_grad()
+    def get_image_metrics(self, outputs: dict[str, Any], batch: dict[str, Any]) -> tuple[dict[str, float], Any]:
+        """Evaluation metrics of one view: ``psnr`` and ``ssim`` (mean of the SSIM map), both over the mask when the
+        batch has one; also returns (pred, gt) as [1, 3, H, W] (masked) for further metrics (LPIPS)."""
+        from kc_splatfacto.metrics import mean_ssim, psnr
+
+        pred_img, gt_img, mask = self._masked_pair(outputs, batch)
+        pred_bchw, gt_bchw = _bchw(pred_img).float(), _bchw(gt_img)
+        mask = None if mask is None else _bchw(mask)
+        metrics = {"psnr": float(psnr(pred_bchw, gt_bchw, mask=mask)),
+                   "ssim": float(mean_ssim(pred_bchw, gt_bchw, mask=mask))}
+        return metrics, (pred_bchw, gt_bchw)
 
     def _cached_wavelet_target(self, image_idx: int | None) -> Any:
         """The training image's cached WaveletTarget at the current resolution, or None (never computes one)."""
