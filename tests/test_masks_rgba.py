@@ -119,3 +119,23 @@ def test_a_render_equal_to_the_rgba_ground_truth_has_zero_loss_under_any_backgro
     old_gt = straight[..., :3] * straight[..., 3:]  # the old load-time compositing over black
     if background != "black":
         assert float((render - old_gt).abs().mean()) > 0.01  # what the old loss compared: far from zero
+
+
+def test_both_splits_come_from_one_parse_of_the_model(monkeypatch, castle_p30):
+    """The data manager asks for the train and the eval split; the COLMAP model (the slow part) is read once."""
+    import kc_splatfacto.data.spars3r as spars3r
+    from kc_splatfacto.engine.datamanager import DataManagerConfig
+
+    calls = []
+    real = spars3r.read_colmap_model
+
+    def counting(*args, **kwargs):
+        calls.append(args)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(spars3r, "read_colmap_model", counting)
+    datamanager = DataManagerConfig(data=castle_p30, downscale_factor=4).setup()
+    assert len(calls) == 1
+    assert len(datamanager.train_dataset) == 12 and len(datamanager.eval_dataset) == 12
+    names = {Path(p).name for p in datamanager.train_dataset.image_filenames}
+    assert not names & {Path(p).name for p in datamanager.eval_dataset.image_filenames}

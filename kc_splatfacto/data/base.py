@@ -77,6 +77,14 @@ class DataParser:
         self.config = config
         _check_common_config(config)
 
+    def memo(self, key: Any, build: Any, *args: Any) -> Any:
+        """``build(*args)``, computed once per parser and ``key``: the splits of one scene share one parse of its
+        model (read once, whichever split is asked for first)."""
+        cache = self.__dict__.setdefault("_memo", {})
+        if key not in cache:
+            cache[key] = build(*args)
+        return cache[key]
+
     def get_dataparser_outputs(self, split: str = "train") -> DataparserOutputs:
         """The split's images and cameras ("train", "val" or "test"), in the normalized world."""
         if split not in SPLITS:

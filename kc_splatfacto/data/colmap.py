@@ -513,9 +513,8 @@ class ColmapDataParser(DataParser):
             raise DataParserError(
                 f"image folder {images_dir} does not exist: set images_path to the scene's image folder"
             )
-        model = read_colmap_model(
-            find_model_dir(scene, self.config.colmap_path), load_points=self.config.load_3d_points
-        )
+        model_dir = find_model_dir(scene, self.config.colmap_path)
+        model = self.memo(("colmap", model_dir), read_colmap_model, model_dir, self.config.load_3d_points)
         if not model.images:
             raise DataParserError(f"the COLMAP model in {model.path} has no registered images")
         names = [image.name for image in model.images]

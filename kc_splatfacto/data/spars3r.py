@@ -96,7 +96,8 @@ class Spars3rDataParser(DataParser):
         if not train_names:
             raise DataParserError(f"the train list {train_list} is empty: list the training images, one a line")
 
-        model = read_colmap_model(spars3r_model_dir(scene, self.config.colmap_path), self.config.load_3d_points)
+        model_dir = spars3r_model_dir(scene, self.config.colmap_path)
+        model = self.memo(("colmap", model_dir), read_colmap_model, model_dir, self.config.load_3d_points)
         missing_train = [n for n in train_names if n not in model.by_name]
         if missing_train:
             raise DataParserError(

@@ -160,7 +160,7 @@ class TransformsDataParser(DataParser):
         data = Path(self.config.data)
         if not data.exists():
             raise DataParserError(f"scene {data} does not exist: check --data")
-        meta, base, json_path = load_transforms_json(data)
+        meta, base, json_path = self.memo("transforms.json", load_transforms_json, data)
 
         frames, missing = [], []
         for frame in meta["frames"]:
