@@ -9,9 +9,8 @@ import torch.nn.functional as F
 
 from kc_splatfacto.losses import (
     FrequencyLoss,
-    WaveletTarget,
+    WaveletBands,
     band_kurtosis,
-    band_kurtosis_for_logging,
     cbc_loss,
     covariance_penalty,
     cross_band_covariance,
@@ -19,7 +18,9 @@ from kc_splatfacto.losses import (
     kc_loss,
     kurtosis_spread,
     level_weights,
+    mean_band_kurtosis,
     prepare_target,
+    wavelet_bands,
     wavelet_l1,
 )
 
@@ -41,6 +42,15 @@ def blur(image: torch.Tensor, sigma: float = 1.5) -> torch.Tensor:
     padded = F.pad(image, (radius, radius, radius, radius), mode="reflect")
     out = F.conv2d(padded, taps.view(1, 1, 1, -1).expand(channels, 1, 1, -1), groups=channels)
     return F.conv2d(out, taps.view(1, 1, -1, 1).expand(channels, 1, -1, 1), groups=channels)
+
+
+def bands(image, **options) -> WaveletBands:
+    """The differentiable WaveletBands of an image array or tensor (every statistic)."""
+    return wavelet_bands(torch.as_tensor(image), **options)
+
+
+def target(image, **options) -> WaveletBands:
+    return prepare_target(torch.as_tensor(image), **options)
 
 
 def pywt_bands(image: np.ndarray, wave="db3", mode="symmetric", levels=3):
@@ -77,7 +87,7 @@ def test_wavelet_l1_matches_numpy(heavy_tailed_pair, weighting):
                 np.abs(pywt_bands(pred[b, c])[j][o] - pywt_bands(gt[b, c])[j][o]) for b in range(2) for c in range(3)
             ]
             expected += weights[j] * np.mean(np.stack(diffs))
-    ours = wavelet_l1(torch.tensor(pred), torch.tensor(gt), weighting=weighting)
+    ours = wavelet_l1(bands(pred), target(gt), wavelet_weighting=weighting)
     assert abs(float(ours) - expected) <= 1e-10 * expected
 
 
@@ -121,9 +131,9 @@ def test_kc_loss_matches_scipy_formula(heavy_tailed_pair):
             spread_p, spread_g = kp.max() - kp.min(), kg.max() - kg.min()
             per_image.append(abs(spread_p - spread_g) + np.abs(kp - kg).sum())
     expected = np.mean(per_image)
-    ours = kc_loss(torch.tensor(pred), torch.tensor(gt))
+    ours = kc_loss(bands(pred), target(gt))
     np.testing.assert_allclose(float(ours), expected, rtol=1e-6)
-    unsupervised = kc_loss(torch.tensor(pred), supervised=False)
+    unsupervised = kc_loss(bands(pred), kc_supervised=False)
     spreads = [
         np.ptp([scipy.stats.kurtosis(x.ravel()) for lvl in pywt_bands(pred[b, c]) for x in lvl])
         for b in range(2)
@@ -159,36 +169,43 @@ def test_cbc_loss_matches_numpy(heavy_tailed_pair, correlation):
     lp = np.array([[l_cov(pred[b, c]) for c in range(3)] for b in range(2)])
     lg = np.array([[l_cov(gt[b, c]) for c in range(3)] for b in range(2)])
     np.testing.assert_allclose(covariance_penalty(dwt2(torch.tensor(pred)), correlation).numpy(), lp, rtol=1e-6)
-    ours = cbc_loss(torch.tensor(pred), torch.tensor(gt), correlation=correlation)
+    ours = cbc_loss(bands(pred, cbc_correlation=correlation), target(gt, cbc_correlation=correlation))
     np.testing.assert_allclose(float(ours), np.mean(np.abs(lp - lg)), rtol=1e-6)
-    unsupervised = cbc_loss(torch.tensor(pred), supervised=False, correlation=correlation)
+    unsupervised = cbc_loss(bands(pred, cbc_correlation=correlation), cbc_supervised=False)
     np.testing.assert_allclose(float(unsupervised), lp.mean(), rtol=1e-6)
 
 
 def test_prepare_target_is_detached_and_matches_direct_statistics(heavy_tailed_pair):
     _, gt = heavy_tailed_pair
     gt_t = torch.tensor(gt, requires_grad=True)
-    target = prepare_target(gt_t)
-    assert isinstance(target, WaveletTarget)
-    tensors = [target.coeffs.approx, *target.coeffs.details, target.kurtosis, target.spread, target.l_cov]
+    prepared = prepare_target(gt_t)
+    assert isinstance(prepared, WaveletBands)
+    tensors = [prepared.coeffs.approx, *prepared.coeffs.details, prepared.kurtosis, prepared.spread, prepared.l_cov]
     assert not any(t.requires_grad for t in tensors)
     coeffs = dwt2(gt_t.detach())
-    torch.testing.assert_close(target.kurtosis, band_kurtosis(coeffs))
-    torch.testing.assert_close(target.spread, kurtosis_spread(band_kurtosis(coeffs)))
-    torch.testing.assert_close(target.l_cov, covariance_penalty(coeffs))
+    torch.testing.assert_close(prepared.kurtosis, band_kurtosis(coeffs))
+    torch.testing.assert_close(prepared.spread, kurtosis_spread(band_kurtosis(coeffs)))
+    torch.testing.assert_close(prepared.l_cov, covariance_penalty(coeffs))
 
 
-def test_frequency_loss_cached_target_equals_image_target_and_functions(heavy_tailed_pair):
+def test_frequency_loss_is_the_public_functions_times_their_weights(heavy_tailed_pair):
     pred, gt = (torch.tensor(a) for a in heavy_tailed_pair)
     loss = FrequencyLoss(wavelet_weight=0.5, kc_weight=0.25, cbc_weight=2.0)
-    from_image = loss(pred, gt)
-    from_cache = loss(pred, loss.prepare_target(gt))
-    assert set(from_image) == {"wavelet_loss", "kc_loss", "cbc_loss"}
-    for key in from_image:
-        torch.testing.assert_close(from_image[key], from_cache[key], rtol=0, atol=0)
-    torch.testing.assert_close(from_image["wavelet_loss"], 0.5 * wavelet_l1(pred, gt))
-    torch.testing.assert_close(from_image["kc_loss"], 0.25 * kc_loss(pred, gt))
-    torch.testing.assert_close(from_image["cbc_loss"], 2.0 * cbc_loss(pred, gt))
+    out = loss(pred, loss.prepare_target(gt))
+    assert set(out) == {"wavelet_loss", "kc_loss", "cbc_loss"}
+    torch.testing.assert_close(out["wavelet_loss"], 0.5 * wavelet_l1(bands(pred), target(gt)), rtol=0, atol=0)
+    torch.testing.assert_close(out["kc_loss"], 0.25 * kc_loss(bands(pred), target(gt)), rtol=0, atol=0)
+    torch.testing.assert_close(out["cbc_loss"], 2.0 * cbc_loss(bands(pred), target(gt)), rtol=0, atol=0)
+
+
+def test_each_argument_takes_one_type(heavy_tailed_pair):
+    pred, gt = (torch.tensor(a) for a in heavy_tailed_pair)
+    with pytest.raises(TypeError, match="WaveletBands"):
+        FrequencyLoss()(pred, gt)  # an image is not a target: prepare it once with prepare_target
+    with pytest.raises(TypeError, match="WaveletBands"):
+        kc_loss(pred, target(gt))
+    with pytest.raises(ValueError, match="without 'kurtosis'"):
+        kc_loss(bands(pred, kurtosis=False), target(gt))
 
 
 @pytest.mark.parametrize(
@@ -204,7 +221,7 @@ def test_frequency_loss_cached_target_equals_image_target_and_functions(heavy_ta
 def test_frequency_loss_returns_only_active_terms(weights, keys):
     loss = FrequencyLoss(*weights)
     assert loss.active == bool(keys)
-    out = loss(torch.rand(1, 3, 64, 64), torch.rand(1, 3, 64, 64))
+    out = loss(torch.rand(1, 3, 64, 64), loss.prepare_target(torch.rand(1, 3, 64, 64)))
     assert set(out) == keys
 
 
@@ -217,16 +234,17 @@ def test_bad_weight_is_refused(bad):
 def test_frequency_loss_unsupervised_and_correlation_options(heavy_tailed_pair):
     pred, gt = (torch.tensor(a) for a in heavy_tailed_pair)
     loss = FrequencyLoss(0.0, 1.0, 1.0, kc_supervised=False, cbc_supervised=False, cbc_correlation=True)
-    out = loss(pred, gt)
-    torch.testing.assert_close(out["kc_loss"], kc_loss(pred, supervised=False))
-    torch.testing.assert_close(out["cbc_loss"], cbc_loss(pred, supervised=False, correlation=True))
+    out = loss(pred, loss.prepare_target(gt))
+    torch.testing.assert_close(out["kc_loss"], kc_loss(bands(pred), kc_supervised=False))
+    torch.testing.assert_close(out["cbc_loss"], cbc_loss(bands(pred, cbc_correlation=True), cbc_supervised=False))
 
 
 def test_frequency_loss_weighting_option(heavy_tailed_pair):
     pred, gt = (torch.tensor(a) for a in heavy_tailed_pair)
     for weighting in ("paper", "fine", "uniform"):
-        out = FrequencyLoss(1.0, 0.0, 0.0, weighting=weighting)(pred, gt)
-        torch.testing.assert_close(out["wavelet_loss"], wavelet_l1(pred, gt, weighting=weighting))
+        loss = FrequencyLoss(1.0, 0.0, 0.0, wavelet_weighting=weighting)
+        out = loss(pred, loss.prepare_target(gt))
+        torch.testing.assert_close(out["wavelet_loss"], wavelet_l1(bands(pred), target(gt), wavelet_weighting=weighting))
 
 
 def test_float64_cached_target_serves_a_float32_prediction(heavy_tailed_pair):
@@ -241,16 +259,16 @@ def test_float64_cached_target_serves_a_float32_prediction(heavy_tailed_pair):
 
 def test_target_with_other_settings_is_refused():
     gt = torch.rand(1, 3, 64, 64)
-    target = FrequencyLoss(mode="zero").prepare_target(gt)
+    zero_padded = FrequencyLoss(wavelet_mode="zero").prepare_target(gt)
     with pytest.raises(ValueError, match="prepare the target"):
-        FrequencyLoss(mode="symmetric")(torch.rand(1, 3, 64, 64), target)
+        FrequencyLoss(wavelet_mode="symmetric")(torch.rand(1, 3, 64, 64), zero_padded)
     with pytest.raises(ValueError, match="same"):
         FrequencyLoss()(torch.rand(1, 3, 64, 32), FrequencyLoss().prepare_target(gt))
-    pred = torch.rand(1, 3, 64, 64)
+    pred = bands(torch.rand(1, 3, 64, 64))
     for call in (
-        lambda: wavelet_l1(pred, target),
-        lambda: kc_loss(pred, target),
-        lambda: cbc_loss(pred, target, mode="zero", correlation=True),
+        lambda: wavelet_l1(pred, zero_padded),
+        lambda: kc_loss(pred, zero_padded),
+        lambda: cbc_loss(bands(torch.rand(1, 3, 64, 64), wavelet_mode="zero", cbc_correlation=True), zero_padded),
     ):
         with pytest.raises(ValueError, match="prepare the target"):
             call()
@@ -260,11 +278,11 @@ def test_frequency_loss_falls_when_optimized(castle_p30):
     gt = load_image(castle_p30).float()
     pred = blur(gt, sigma=2.0).clone().requires_grad_(True)
     loss = FrequencyLoss(wavelet_weight=1.0, kc_weight=1e-2, cbc_weight=1e3)
-    target = loss.prepare_target(gt)
+    prepared = loss.prepare_target(gt)
     optimizer = torch.optim.Adam([pred], lr=1e-2)
     history = []
     for _ in range(60):
-        terms = loss(pred, target)
+        terms = loss(pred, prepared)
         total = sum(terms.values())
         history.append({k: float(v.detach()) for k, v in terms.items()})
         optimizer.zero_grad()
@@ -283,15 +301,13 @@ def test_symmetric_padding_keeps_boundary_artifacts_out_of_blurred_kurtosis(cast
     assert bool((finest["periodization"] > 2 * finest["symmetric"]).all())
 
 
-def test_band_kurtosis_for_logging_layouts(castle_p30):
+def test_mean_band_kurtosis_of_image_and_target(castle_p30):
     image = load_image(castle_p30).float()
     expected = band_kurtosis(dwt2(image)).mean(dim=(0, 1)).tolist()
-    from_bchw = band_kurtosis_for_logging(image)
-    from_hwc = band_kurtosis_for_logging(image[0].permute(1, 2, 0))
-    from_target = FrequencyLoss().band_kurtosis_for_logging(FrequencyLoss().prepare_target(image))
-    assert len(from_bchw) == 9
-    np.testing.assert_allclose(from_bchw, expected, rtol=1e-6)
-    np.testing.assert_allclose(from_hwc, expected, rtol=1e-6)
+    from_image = mean_band_kurtosis(bands(image, covariance=False))
+    from_target = mean_band_kurtosis(FrequencyLoss().prepare_target(image))
+    assert len(from_image) == 9
+    np.testing.assert_allclose(from_image, expected, rtol=1e-6)
     np.testing.assert_allclose(from_target, expected, rtol=1e-6)
 
 
@@ -301,15 +317,15 @@ def test_gradcheck_float64(term):
     torch.manual_seed(1)
     pred = torch.rand(2, 1, 20, 21, dtype=torch.float64, requires_grad=True)
     gt = torch.rand(2, 1, 20, 21, dtype=torch.float64)
-    options = {"levels": 2}
+    options = {"wavelet_levels": 2}
     functions = {
         "kurtosis": lambda p: band_kurtosis(dwt2(p, levels=2)),
         "covariance": lambda p: torch.stack(cross_band_covariance(dwt2(p, levels=2))),
         "correlation": lambda p: torch.stack(cross_band_covariance(dwt2(p, levels=2), correlation=True)),
-        "kc": lambda p: kc_loss(p, gt, **options),
-        "kc_unsupervised": lambda p: kc_loss(p, supervised=False, **options),
-        "cbc": lambda p: cbc_loss(p, gt, **options) * 1e4,
-        "module": lambda p: torch.stack(list(FrequencyLoss(1.0, 1.0, 1e4, levels=2)(p, gt).values())),
+        "kc": lambda p: kc_loss(bands(p, **options), target(gt, **options)),
+        "kc_unsupervised": lambda p: kc_loss(bands(p, **options), kc_supervised=False),
+        "cbc": lambda p: cbc_loss(bands(p, **options), target(gt, **options)) * 1e4,
+        "module": lambda p: torch.stack(list(FrequencyLoss(1.0, 1.0, 1e4, **options)(p, target(gt, **options)).values())),
     }
     # fast mode: the Jacobian against finite differences along random directions (full mode is ~10x slower)
     assert torch.autograd.gradcheck(functions[term], (pred,), eps=1e-6, atol=1e-6, rtol=1e-5, fast_mode=True)

@@ -16,12 +16,16 @@ The kc and cbc terms are averaged over images and channels. An image too small f
 every term is then 0 (still attached to pred's graph, with a zero gradient). `docs/losses.md` explains the choices
 (weighting, padding, eps).
 
-The ground truth never needs gradients: `prepare_target(gt)` computes its coefficients and statistics once, detached,
-as a `WaveletTarget` that every loss here accepts in place of the gt image, so a trainer can cache it per image.
+API (kornia's shape: functions that do the work, a thin module that calls them): `wavelet_bands(image)` computes an
+image's DWT and statistics once (`WaveletBands`); `wavelet_l1`, `kc_loss` and `cbc_loss` take the bands of pred and
+gt, so the three terms share one DWT of the render and KC and CBC one moment pass. The ground truth never needs
+gradients: `prepare_target(gt)` is its bands, detached, which a trainer caches per image. `FrequencyLoss(pred,
+target)` is `wavelet_bands(pred)` followed by the three functions, each times its weight.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -202,102 +206,109 @@ def covariance_penalty(coeffs: WaveletCoeffs, correlation: bool = False) -> Tens
     return _off_diagonal_energy(cross_band_covariance(coeffs, correlation), coeffs.approx)
 
 
-# --------------------------------------------------------------------------------------------------- target
+# --------------------------------------------------------------------------------------------------- bands
 
 
 @dataclass
-class WaveletTarget:
-    """Detached coefficients and statistics of a ground-truth batch (compute once per image, reuse every step).
+class WaveletBands:
+    """An image batch's DWT and the statistics the losses compare: what :func:`wavelet_l1`, :func:`kc_loss` and
+    :func:`cbc_loss` take for both sides (one DWT of the render shared by the three terms, one moment pass shared by
+    KC and CBC).
 
-    coeffs: WaveletCoeffs of gt; kurtosis [B, C, 3J]; spread [B, C]; l_cov [B, C] (with `correlation`);
-    wave / levels (requested) / mode: the transform they were computed with; image_shape: gt's [B, C, H, W].
+    coeffs: WaveletCoeffs; kurtosis [B, C, 3J] and spread [B, C] (None unless computed); l_cov [B, C] (None unless
+    computed; with ``cbc_correlation``); wave / wavelet_levels (requested) / wavelet_mode / cbc_correlation: the
+    settings they were computed with; image_shape: the image's [B, C, H, W].
     """
 
     coeffs: WaveletCoeffs
-    kurtosis: Tensor
-    spread: Tensor
-    l_cov: Tensor
+    kurtosis: Tensor | None
+    spread: Tensor | None
+    l_cov: Tensor | None
     wave: str
-    levels: int
-    mode: str
-    correlation: bool
+    wavelet_levels: int
+    wavelet_mode: str
+    cbc_correlation: bool
     image_shape: tuple[int, int, int, int]
 
-    def to(self, *args, **kwargs) -> WaveletTarget:
-        return WaveletTarget(
-            coeffs=self.coeffs.to(*args, **kwargs),
-            kurtosis=self.kurtosis.to(*args, **kwargs),
-            spread=self.spread.to(*args, **kwargs),
-            l_cov=self.l_cov.to(*args, **kwargs),
-            wave=self.wave,
-            levels=self.levels,
-            mode=self.mode,
-            correlation=self.correlation,
-            image_shape=self.image_shape,
-        )
+    def to(self, *args, **kwargs) -> WaveletBands:
+        def move(x: Tensor | None) -> Tensor | None:
+            return None if x is None else x.to(*args, **kwargs)
+
+        return dataclasses.replace(self, coeffs=self.coeffs.to(*args, **kwargs), kurtosis=move(self.kurtosis),
+                                   spread=move(self.spread), l_cov=move(self.l_cov))
 
     @property
     def device(self) -> torch.device:
         return self.coeffs.approx.device
 
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.coeffs.approx.dtype
+
+
+def wavelet_bands(
+    image: Tensor,
+    wave: str = "db3",
+    wavelet_levels: int = 3,
+    wavelet_mode: str = "symmetric",
+    cbc_correlation: bool = False,
+    kurtosis: bool = True,
+    covariance: bool = True,
+) -> WaveletBands:
+    """The DWT of image [B, C, H, W] and, when asked, its band kurtosis and L_cov (differentiable; raises
+    ValueError on NaN/Inf); the statistics not asked for stay None."""
+    _check_image(image, "image")
+    coeffs = dwt2(image, wave=wave, levels=wavelet_levels, mode=wavelet_mode)
+    k = spread = l_cov = None
+    if kurtosis or covariance:  # (no level: empty kurtosis [B, C, 0], zero spread and L_cov)
+        moments, power = _level_moments(coeffs, kurtosis, covariance)
+        if kurtosis:
+            k = _kurtosis_from_moments(moments, coeffs.approx)
+            spread = kurtosis_spread(k)
+        if covariance:
+            l_cov = _off_diagonal_energy(_covariances_from_moments(moments, power, cbc_correlation), coeffs.approx)
+    return WaveletBands(coeffs, k, spread, l_cov, wave, wavelet_levels, wavelet_mode, cbc_correlation,
+                        tuple(image.shape))
+
 
 def prepare_target(
-    gt: Tensor, wave: str = "db3", levels: int = 3, mode: str = "symmetric", correlation: bool = False
-) -> WaveletTarget:
-    """Detached WaveletTarget of gt [B, C, H, W] (raises ValueError on NaN/Inf naming 'gt')."""
+    gt: Tensor, wave: str = "db3", wavelet_levels: int = 3, wavelet_mode: str = "symmetric",
+    cbc_correlation: bool = False,
+) -> WaveletBands:
+    """The ground truth's WaveletBands with every statistic, detached: compute once per image, reuse every step
+    (raises ValueError on NaN/Inf naming 'gt')."""
     _check_image(gt, "gt")
     with torch.no_grad():
-        coeffs = dwt2(gt.detach(), wave=wave, levels=levels, mode=mode)
-        moments, power = _level_moments(coeffs, True, True)
-        kurtosis = _kurtosis_from_moments(moments, coeffs.approx)
-        l_cov = _off_diagonal_energy(_covariances_from_moments(moments, power, correlation), coeffs.approx)
-    return WaveletTarget(
-        coeffs=coeffs,
-        kurtosis=kurtosis,
-        spread=kurtosis_spread(kurtosis),
-        l_cov=l_cov,
-        wave=wave,
-        levels=levels,
-        mode=mode,
-        correlation=correlation,
-        image_shape=tuple(gt.shape),
-    )
+        return wavelet_bands(gt.detach(), wave, wavelet_levels, wavelet_mode, cbc_correlation)
 
 
-def _check_target_settings(target: WaveletTarget, wave: str, levels: int, mode: str, correlation: bool) -> None:
-    if (target.wave, target.levels, target.mode, target.correlation) != (wave, levels, mode, correlation):
+def _check_pair(pred: WaveletBands, gt: WaveletBands, with_correlation: bool = False) -> WaveletBands:
+    """gt on pred's device and dtype, after checking that both were computed the same way."""
+    for name, x in (("pred", pred), ("gt", gt)):
+        if not isinstance(x, WaveletBands):
+            raise TypeError(f"'{name}' must be WaveletBands (wavelet_bands(image) / prepare_target(gt)), "
+                            f"got {type(x).__name__}")
+    settings = ("wave", "wavelet_levels", "wavelet_mode") + (("cbc_correlation",) if with_correlation else ())
+    if any(getattr(pred, k) != getattr(gt, k) for k in settings):
+        describe = lambda x: ", ".join(f"{k}={getattr(x, k)}" for k in settings)  # noqa: E731
+        raise ValueError(f"pred and gt bands were computed differently (pred: {describe(pred)}; gt: {describe(gt)}): "
+                         "prepare the target with the loss's own settings")
+    if pred.coeffs.approx.shape != gt.coeffs.approx.shape or pred.coeffs.levels != gt.coeffs.levels:
         raise ValueError(
-            f"the cached WaveletTarget was prepared with wave={target.wave}, levels={target.levels}, "
-            f"mode={target.mode}, correlation={target.correlation}, but the loss uses wave={wave}, levels={levels}, "
-            f"mode={mode}, correlation={correlation}: prepare the target with the loss's own settings"
+            f"pred and gt decompose differently (pred image {pred.image_shape}, gt image {gt.image_shape}): "
+            "give images of the same [B, C, H, W]"
         )
+    if gt.device != pred.device or gt.dtype != pred.dtype:
+        gt = gt.to(device=pred.device, dtype=pred.dtype)  # e.g. a float64 or CPU cache
+    return gt
 
 
-def _as_coeffs(x, name: str, wave: str, levels: int, mode: str) -> WaveletCoeffs:
-    if isinstance(x, WaveletCoeffs):
-        return x
-    if isinstance(x, WaveletTarget):
-        _check_target_settings(x, wave, levels, mode, x.correlation)  # correlation only matters for L_cov
-        return x.coeffs
-    _check_image(x, name)
-    return dwt2(x, wave=wave, levels=levels, mode=mode)
-
-
-def _as_target(gt, wave: str, levels: int, mode: str, correlation: bool) -> WaveletTarget:
-    if isinstance(gt, WaveletTarget):
-        _check_target_settings(gt, wave, levels, mode, correlation)
-        return gt
-    if isinstance(gt, WaveletCoeffs):
-        raise TypeError("pass the gt as an image [B, C, H, W] or a WaveletTarget (from prepare_target), not coeffs")
-    return prepare_target(gt, wave=wave, levels=levels, mode=mode, correlation=correlation)
-
-
-def _check_same_layout(pred: WaveletCoeffs, gt: WaveletCoeffs) -> None:
-    if pred.approx.shape != gt.approx.shape or pred.levels != gt.levels:
-        raise ValueError(
-            f"pred and gt decompose differently (pred approx {tuple(pred.approx.shape)} with {pred.levels} levels, "
-            f"gt approx {tuple(gt.approx.shape)} with {gt.levels} levels): give images of the same [B, C, H, W]"
-        )
+def _need(bands: WaveletBands, field: str, name: str) -> Tensor:
+    value = getattr(bands, field)
+    if value is None:
+        raise ValueError(f"the {name} bands were computed without '{field}': compute them with wavelet_bands(..., "
+                         f"{'kurtosis' if field != 'l_cov' else 'covariance'}=True)")
+    return value
 
 
 # --------------------------------------------------------------------------------------------------- losses
@@ -308,100 +319,72 @@ def _no_band_loss(pred: WaveletCoeffs) -> Tensor:
     return pred.approx.sum() * 0.0
 
 
-def _wavelet_l1_coeffs(pred: WaveletCoeffs, gt: WaveletCoeffs, weighting: str) -> Tensor:
-    if pred.levels == 0:
-        return _no_band_loss(pred)
-    weights = level_weights(pred.levels, weighting)
-    loss = pred.approx.new_zeros(())
-    for weight, band_pred, band_gt in zip(weights, pred.details, gt.details):
+def wavelet_l1(pred: WaveletBands, gt: WaveletBands, wavelet_weighting: str = "paper") -> Tensor:
+    """Scale-weighted L1 between detail subbands: sum_j w_j sum_{o in H,V,D} mean|c^j_o(pred) - c^j_o(gt)| (scalar)."""
+    level_weights(0, wavelet_weighting)  # validate the name early
+    gt = _check_pair(pred, gt)
+    if pred.coeffs.levels == 0:
+        return _no_band_loss(pred.coeffs)
+    weights = level_weights(pred.coeffs.levels, wavelet_weighting)
+    loss = pred.coeffs.approx.new_zeros(())
+    for weight, band_pred, band_gt in zip(weights, pred.coeffs.details, gt.coeffs.details):
         # sum over the 3 orientations of each one's mean = 3 * mean over the level's [B, C, 3, h, w]
-        loss = loss + (weight * 3.0) * F.l1_loss(band_pred, band_gt)
+        loss = loss + (weight * 3.0) * F.l1_loss(band_pred, band_gt.detach())
     return loss
 
 
-def wavelet_l1(
-    pred, gt, weighting: str = "paper", wave: str = "db3", levels: int = 3, mode: str = "symmetric"
-) -> Tensor:
-    """Scale-weighted L1 between detail subbands: sum_j w_j sum_{o in H,V,D} mean|c^j_o(pred) - c^j_o(gt)| (scalar).
-
-    pred: image [B, C, H, W] or its WaveletCoeffs; gt: image, WaveletCoeffs or WaveletTarget.
-    """
-    level_weights(0, weighting)  # validate the name early
-    pred_c = _as_coeffs(pred, "pred", wave, levels, mode)
-    gt_c = _as_coeffs(gt, "gt", wave, levels, mode)
-    _check_same_layout(pred_c, gt_c)
-    return _wavelet_l1_coeffs(pred_c, gt_c.detach(), weighting)
-
-
-def kc_loss(
-    pred, gt=None, supervised: bool = True, wave: str = "db3", levels: int = 3, mode: str = "symmetric"
-) -> Tensor:
+def kc_loss(pred: WaveletBands, gt: WaveletBands | None = None, kc_supervised: bool = True) -> Tensor:
     """Kurtosis-concentration loss (scalar), averaged over images and channels.
 
     supervised: |spread(pred) - spread(gt)| + sum_b |k_b(pred) - k_b(gt)|; unsupervised (gt unused): spread(pred).
     """
-    pred_c = _as_coeffs(pred, "pred", wave, levels, mode)
-    if pred_c.levels == 0:
-        return _no_band_loss(pred_c)
-    k_pred = band_kurtosis(pred_c)
-    if not supervised:
-        return kurtosis_spread(k_pred).mean()
-    if gt is None:
-        raise ValueError("the supervised kc_loss needs gt (an image or a WaveletTarget); or pass supervised=False")
-    if isinstance(gt, WaveletTarget):
-        _check_target_settings(gt, wave, levels, mode, gt.correlation)
-        k_gt, spread_gt = gt.kurtosis, gt.spread
-    else:
-        gt_c = _as_coeffs(gt, "gt", wave, levels, mode).detach()
-        k_gt = band_kurtosis(gt_c)
-        spread_gt = kurtosis_spread(k_gt)
-    if k_gt.shape != k_pred.shape:
-        raise ValueError(f"pred and gt kurtosis shapes differ: {tuple(k_pred.shape)} vs {tuple(k_gt.shape)}")
-    return _kc_from_kurtosis(k_pred, k_gt, spread_gt)
-
-
-def _kc_from_kurtosis(k_pred: Tensor, k_gt: Tensor, spread_gt: Tensor) -> Tensor:
-    per_image = (kurtosis_spread(k_pred) - spread_gt).abs() + (k_pred - k_gt).abs().sum(dim=-1)
+    if kc_supervised:
+        if gt is None:
+            raise ValueError("the supervised kc_loss needs gt (prepare_target(gt)); or pass kc_supervised=False")
+        gt = _check_pair(pred, gt)
+    if pred.coeffs.levels == 0:
+        return _no_band_loss(pred.coeffs)
+    k_pred, spread_pred = _need(pred, "kurtosis", "pred"), _need(pred, "spread", "pred")
+    if not kc_supervised:
+        return spread_pred.mean()
+    per_image = (spread_pred - _need(gt, "spread", "gt")).abs() + (k_pred - _need(gt, "kurtosis", "gt")).abs().sum(dim=-1)
     return per_image.mean()
 
 
-def cbc_loss(
-    pred,
-    gt=None,
-    supervised: bool = True,
-    correlation: bool = False,
-    wave: str = "db3",
-    levels: int = 3,
-    mode: str = "symmetric",
-) -> Tensor:
-    """Cross-band covariance loss (scalar), averaged over images and channels.
+def cbc_loss(pred: WaveletBands, gt: WaveletBands | None = None, cbc_supervised: bool = True) -> Tensor:
+    """Cross-band covariance loss (scalar), averaged over images and channels (covariance or correlation, as the
+    bands were computed).
 
     supervised: |L_cov(pred) - L_cov(gt)|; unsupervised (gt unused): L_cov(pred).
     """
-    pred_c = _as_coeffs(pred, "pred", wave, levels, mode)
-    if pred_c.levels == 0:
-        return _no_band_loss(pred_c)
-    l_pred = covariance_penalty(pred_c, correlation)
-    if not supervised:
+    if cbc_supervised:
+        if gt is None:
+            raise ValueError("the supervised cbc_loss needs gt (prepare_target(gt)); or pass cbc_supervised=False")
+        gt = _check_pair(pred, gt, with_correlation=True)
+    if pred.coeffs.levels == 0:
+        return _no_band_loss(pred.coeffs)
+    l_pred = _need(pred, "l_cov", "pred")
+    if not cbc_supervised:
         return l_pred.mean()
-    if gt is None:
-        raise ValueError("the supervised cbc_loss needs gt (an image or a WaveletTarget); or pass supervised=False")
-    if isinstance(gt, WaveletTarget):
-        _check_target_settings(gt, wave, levels, mode, correlation)
-        l_gt = gt.l_cov
-    else:
-        l_gt = covariance_penalty(_as_coeffs(gt, "gt", wave, levels, mode).detach(), correlation)
-    return (l_pred - l_gt).abs().mean()
+    return (l_pred - _need(gt, "l_cov", "gt")).abs().mean()
+
+
+def mean_band_kurtosis(bands: WaveletBands) -> list[float]:
+    """Per-band excess kurtosis averaged over batch and channels, as 3J Python floats (level-major H, V, D): what the
+    trainer logs."""
+    return [float(v) for v in _need(bands, "kurtosis", "logged").detach().float().mean(dim=(0, 1)).cpu()]
 
 
 # --------------------------------------------------------------------------------------------------- module
 
 
 class FrequencyLoss(nn.Module):
-    """The paper's three wavelet-domain terms from ONE DWT of the prediction.
+    """The paper's three wavelet-domain terms, each already multiplied by its weight (parameters named as in
+    ``SplatfactoModelConfig``).
 
-    forward(pred [B, C, H, W], target: WaveletTarget | gt image [B, C, H, W]) -> dict holding only the terms whose
-    weight is non-zero among "wavelet_loss", "kc_loss", "cbc_loss", each already multiplied by its weight.
+    forward(pred [B, C, H, W], target: WaveletBands from :meth:`prepare_target`) -> dict holding only the terms whose
+    weight is non-zero among "wavelet_loss", "kc_loss", "cbc_loss": one :func:`wavelet_bands` of pred, then
+    :func:`wavelet_l1`, :func:`kc_loss`, :func:`cbc_loss`.
     Defaults are the paper's (supplementary hyperparameter table): wavelet 1e-3, kc 1e-5, cbc 1e-2, db3, 3 levels.
     """
 
@@ -411,17 +394,17 @@ class FrequencyLoss(nn.Module):
         kc_weight: float = 1e-5,
         cbc_weight: float = 1e-2,
         wave: str = "db3",
-        levels: int = 3,
-        mode: str = "symmetric",
-        weighting: str = "paper",
+        wavelet_levels: int = 3,
+        wavelet_mode: str = "symmetric",
+        wavelet_weighting: str = "paper",
         kc_supervised: bool = True,
         cbc_supervised: bool = True,
         cbc_correlation: bool = False,
     ) -> None:
         super().__init__()
-        if mode not in MODES:
-            raise ValueError(f"unknown mode '{mode}': use one of {MODES}")
-        level_weights(0, weighting)
+        if wavelet_mode not in MODES:
+            raise ValueError(f"unknown wavelet_mode '{wavelet_mode}': use one of {MODES}")
+        level_weights(0, wavelet_weighting)
         for name, weight in (("wavelet_weight", wavelet_weight), ("kc_weight", kc_weight), ("cbc_weight", cbc_weight)):
             if not (math.isfinite(weight) and weight >= 0):
                 raise ValueError(f"{name} must be a finite non-negative number, got {weight}")
@@ -430,9 +413,9 @@ class FrequencyLoss(nn.Module):
         self.kc_weight = float(kc_weight)
         self.cbc_weight = float(cbc_weight)
         self.wave = wave
-        self.levels = int(levels)
-        self.mode = mode
-        self.weighting = weighting
+        self.wavelet_levels = int(wavelet_levels)
+        self.wavelet_mode = wavelet_mode
+        self.wavelet_weighting = wavelet_weighting
         self.kc_supervised = kc_supervised
         self.cbc_supervised = cbc_supervised
         self.cbc_correlation = cbc_correlation
@@ -441,69 +424,31 @@ class FrequencyLoss(nn.Module):
     def active(self) -> bool:
         return self.wavelet_weight > 0 or self.kc_weight > 0 or self.cbc_weight > 0
 
-    def prepare_target(self, gt: Tensor) -> WaveletTarget:
-        """Detached coefficients and statistics of gt [B, C, H, W] with this loss's settings (cache it per image)."""
-        return prepare_target(gt, self.wave, self.levels, self.mode, self.cbc_correlation)
+    def bands(self, image: Tensor, kurtosis: bool = True, covariance: bool = True) -> WaveletBands:
+        """:func:`wavelet_bands` of image [B, C, H, W] with this loss's settings."""
+        return wavelet_bands(image, self.wave, self.wavelet_levels, self.wavelet_mode, self.cbc_correlation,
+                             kurtosis=kurtosis, covariance=covariance)
 
-    def band_kurtosis_for_logging(self, image_or_target) -> list[float]:
-        """Per-band kurtosis averaged over batch and channels (3J floats), of an image or a WaveletTarget."""
-        return band_kurtosis_for_logging(image_or_target, self.wave, self.levels, self.mode)
+    def prepare_target(self, gt: Tensor) -> WaveletBands:
+        """Detached bands and statistics of gt [B, C, H, W] with this loss's settings (cache it per image)."""
+        return prepare_target(gt, self.wave, self.wavelet_levels, self.wavelet_mode, self.cbc_correlation)
 
-    def forward(self, pred: Tensor, target) -> dict[str, Tensor]:
+    def forward(self, pred: Tensor, target: WaveletBands) -> dict[str, Tensor]:
         if not self.active:
             return {}
+        if not isinstance(target, WaveletBands):
+            raise TypeError(f"target must be WaveletBands (FrequencyLoss.prepare_target(gt)), got {type(target).__name__}")
         _check_image(pred, "pred")
-        if isinstance(target, Tensor):
-            _check_image(target, "target")
-        target = _as_target(target, self.wave, self.levels, self.mode, self.cbc_correlation)
         if tuple(pred.shape) != tuple(target.image_shape):
             raise ValueError(
                 f"pred {tuple(pred.shape)} and target {tuple(target.image_shape)} must have the same [B, C, H, W]"
             )
-        coeffs = dwt2(pred, wave=self.wave, levels=self.levels, mode=self.mode)
-        reference = coeffs.approx
-        if target.device != reference.device or target.coeffs.approx.dtype != reference.dtype:
-            target = target.to(device=reference.device, dtype=reference.dtype)  # e.g. a float64 or CPU cache
+        bands = self.bands(pred, kurtosis=self.kc_weight > 0, covariance=self.cbc_weight > 0)
         losses: dict[str, Tensor] = {}
         if self.wavelet_weight > 0:
-            losses["wavelet_loss"] = self.wavelet_weight * _wavelet_l1_coeffs(coeffs, target.coeffs, self.weighting)
-        if coeffs.levels == 0:  # too small for any level: every active term is an attached 0
-            zero = _no_band_loss(coeffs)
-            for key, weight in (("kc_loss", self.kc_weight), ("cbc_loss", self.cbc_weight)):
-                if weight > 0:
-                    losses[key] = zero
-        elif self.kc_weight > 0 or self.cbc_weight > 0:
-            moments, power = _level_moments(coeffs, self.kc_weight > 0, self.cbc_weight > 0)
-            if self.kc_weight > 0:
-                k_pred = _kurtosis_from_moments(moments, coeffs.approx)
-                if self.kc_supervised:
-                    kc = _kc_from_kurtosis(k_pred, target.kurtosis, target.spread)
-                else:
-                    kc = kurtosis_spread(k_pred).mean()
-                losses["kc_loss"] = self.kc_weight * kc
-            if self.cbc_weight > 0:
-                l_pred = _off_diagonal_energy(
-                    _covariances_from_moments(moments, power, self.cbc_correlation), coeffs.approx
-                )
-                cbc = (l_pred - target.l_cov).abs().mean() if self.cbc_supervised else l_pred.mean()
-                losses["cbc_loss"] = self.cbc_weight * cbc
+            losses["wavelet_loss"] = self.wavelet_weight * wavelet_l1(bands, target, self.wavelet_weighting)
+        if self.kc_weight > 0:
+            losses["kc_loss"] = self.kc_weight * kc_loss(bands, target, self.kc_supervised)
+        if self.cbc_weight > 0:
+            losses["cbc_loss"] = self.cbc_weight * cbc_loss(bands, target, self.cbc_supervised)
         return losses
-
-
-def band_kurtosis_for_logging(
-    image_or_target, wave: str = "db3", levels: int = 3, mode: str = "symmetric"
-) -> list[float]:
-    """Per-band excess kurtosis averaged over batch and channels, as 3J Python floats (level-major H, V, D).
-
-    Accepts a WaveletTarget, an image [B, C, H, W] or a single image [H, W, C] (the model's rgb layout).
-    """
-    if isinstance(image_or_target, WaveletTarget):
-        kurtosis = image_or_target.kurtosis
-    else:
-        image = image_or_target.detach()
-        if image.dim() == 3:
-            image = image.permute(2, 0, 1).unsqueeze(0)
-        _check_image(image, "image")
-        with torch.no_grad():
-            kurtosis = band_kurtosis(dwt2(image, wave=wave, levels=levels, mode=mode))
-    return [float(v) for v in kurtosis.detach().float().mean(dim=(0, 1)).cpu()]

@@ -27,6 +27,9 @@ SCALE_REG_WEIGHT = 0.1
 """PhysGaussian scale regularization weight in Splatfacto"""
 SCALE_REG_EVERY = 10
 """Splatfacto evaluates the scale regularizer every 10th step only"""
+FREQUENCY_LOSS_FIELDS = ("wavelet_weight", "kc_weight", "cbc_weight", "wave", "wavelet_levels", "wavelet_mode",
+                         "wavelet_weighting", "kc_supervised", "cbc_supervised", "cbc_correlation")
+"""the config fields that build the FrequencyLoss (its parameters have the same names)"""
 
 
 @dataclass
@@ -398,18 +401,7 @@ class SplatfactoModel(torch.nn.Module):
         if self._frequency_loss is None:
             from kc_splatfacto.losses.frequency import FrequencyLoss
 
-            self._frequency_loss = FrequencyLoss(
-                wavelet_weight=cfg.wavelet_weight,
-                kc_weight=cfg.kc_weight,
-                cbc_weight=cfg.cbc_weight,
-                wave=cfg.wave,
-                levels=cfg.wavelet_levels,
-                mode=cfg.wavelet_mode,
-                weighting=cfg.wavelet_weighting,
-                kc_supervised=cfg.kc_supervised,
-                cbc_supervised=cfg.cbc_supervised,
-                cbc_correlation=cfg.cbc_correlation,
-            )
+            self._frequency_loss = FrequencyLoss(**{name: getattr(cfg, name) for name in FREQUENCY_LOSS_FIELDS})
         return self._frequency_loss
 
     def wavelet_target(self, gt_bchw: torch.Tensor, image_idx: int | None) -> Any:
@@ -435,14 +427,14 @@ class SplatfactoModel(torch.nn.Module):
             batch: ``image`` [H, W, 3|4] (uint8 or float, full resolution), ``image_idx`` (int, the cache key) and
                 optionally ``mask`` [H, W, 1] (bool, True = use the pixel).
         """
-        from kc_splatfacto.losses.photometric import dssim
+        from kc_splatfacto.losses.photometric import dssim, l1
 
         pred_img, gt_img, _ = self._masked_pair(outputs, batch)
-        l1 = torch.abs(gt_img - pred_img).mean()
         pred_bchw, gt_bchw = _bchw(pred_img), _bchw(gt_img)
+        l1_loss = l1(pred_bchw, gt_bchw)
         sim_loss = dssim(pred_bchw, gt_bchw)
         lam = self.config.ssim_lambda
-        loss_dict = {"main_loss": (1 - lam) * l1 + lam * sim_loss}
+        loss_dict = {"main_loss": (1 - lam) * l1_loss + lam * sim_loss}
         if self.config.use_scale_regularization:
             if self.step % SCALE_REG_EVERY == 0:
                 scale_exp = torch.exp(self.scales)
@@ -495,7 +487,7 @@ class SplatfactoModel(torch.nn.Module):
         return metrics, (pred_bchw, gt_bchw)
 
     def _cached_wavelet_target(self, image_idx: int | None) -> Any:
-        """The training image's cached WaveletTarget at the current resolution, or None (never computes one)."""
+        """The training image's cached WaveletBands at the current resolution, or None (never computes one)."""
         if image_idx is None or self.frequency_loss is None:
             return None
         return self._wavelet_targets.get((int(image_idx), self.get_downscale_factor()))
@@ -503,13 +495,15 @@ class SplatfactoModel(torch.nn.Module):
     def band_kurtosis(self, image: Any) -> list[float]:
         """Excess kurtosis of every detail subband, channel-averaged: 3 x levels values.
 
-        ``image`` is an [H, W, 3] image or a cached WaveletTarget (whose kurtosis is read, not recomputed).
+        ``image`` is an [H, W, 3] image or the GT's cached WaveletBands (whose kurtosis is read, not recomputed).
         """
-        from kc_splatfacto.losses.frequency import band_kurtosis_for_logging
+        from kc_splatfacto.losses.frequency import WaveletBands, mean_band_kurtosis, wavelet_bands
 
-        if isinstance(image, torch.Tensor):
-            image = image.float()
-        return band_kurtosis_for_logging(image, self.config.wave, self.config.wavelet_levels, self.config.wavelet_mode)
+        if not isinstance(image, WaveletBands):
+            with torch.no_grad():
+                image = wavelet_bands(_bchw(image.detach().float()), self.config.wave, self.config.wavelet_levels,
+                                      self.config.wavelet_mode, covariance=False)
+        return mean_band_kurtosis(image)
 
     # ----------------------------------------------------------------------------------------------- density control
     def step_post_backward(self, optimizers: dict[str, torch.optim.Optimizer], step: int) -> dict[str, int]:
