@@ -33,7 +33,7 @@ TARGET_RATIO = 1.10
 def make_config(method: str, scene: Path, out: Path, downscale: int, iterations: int, steps_scale: float):
     config = copy.deepcopy(discover_methods()[method].config)
     config.pipeline.datamanager.data = scene
-    config.pipeline.datamanager.downscale_factor = downscale
+    config.pipeline.datamanager.dataparser.downscale_factor = downscale
     config.output_dir = out
     config.experiment_name = "bench"
     config.max_num_iterations = iterations

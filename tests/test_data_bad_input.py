@@ -29,7 +29,7 @@ def test_missing_scene_folder(tmp_path):
 
 def test_folder_of_unknown_format_says_what_was_expected(tmp_path):
     (tmp_path / "images").mkdir()
-    with pytest.raises(DataParserError, match="cannot tell the format.*--dataparser"):
+    with pytest.raises(DataParserError, match="cannot tell the format.*subcommand"):
         resolve_dataparser(tmp_path)
 
 

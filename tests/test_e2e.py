@@ -11,6 +11,7 @@ from pathlib import Path
 import torch
 
 from kc_splatfacto.data import resolve_dataparser
+from kc_splatfacto.data.detect import AutoDataParserConfig
 from kc_splatfacto.engine.evaluation import evaluate_split
 from kc_splatfacto.engine.logging import read_metrics
 from kc_splatfacto.engine.run_io import load_run
@@ -48,9 +49,8 @@ def test_castle_p30_short_run_raises_test_psnr(tmp_path, castle_p30):
     # 12 sparse views at 96x64: Splatfacto's absgrad threshold densifies almost everything at this size, and the
     # sparse test views drop while the count explodes, so this short run stays inside the (compressed) warm-up
     config = tiny_demo_config("kc-splatfacto", tmp_path, iterations=100, steps_scale=0.2)
-    config.pipeline.datamanager.dataparser = None
+    config.pipeline.datamanager.dataparser = AutoDataParserConfig(downscale_factor=8)  # 96x64 from 768x512
     config.pipeline.datamanager.data = castle_p30
-    config.pipeline.datamanager.downscale_factor = 8  # 96x64 from the stored 768x512
     config.eval_at_steps = (0,)
     run_dir = Trainer(config).train()
     first, last = evals(run_dir)[0], evals(run_dir)[-1]

@@ -124,6 +124,7 @@ def test_a_render_equal_to_the_rgba_ground_truth_has_zero_loss_under_any_backgro
 def test_both_splits_come_from_one_parse_of_the_model(monkeypatch, castle_p30):
     """The data manager asks for the train and the eval split; the COLMAP model (the slow part) is read once."""
     import kc_splatfacto.data.spars3r as spars3r
+    from kc_splatfacto.data.detect import AutoDataParserConfig
     from kc_splatfacto.engine.datamanager import DataManagerConfig
 
     calls = []
@@ -134,7 +135,7 @@ def test_both_splits_come_from_one_parse_of_the_model(monkeypatch, castle_p30):
         return real(*args, **kwargs)
 
     monkeypatch.setattr(spars3r, "read_colmap_model", counting)
-    datamanager = DataManagerConfig(data=castle_p30, downscale_factor=4).setup()
+    datamanager = DataManagerConfig(data=castle_p30, dataparser=AutoDataParserConfig(downscale_factor=4)).setup()
     assert len(calls) == 1
     assert len(datamanager.train_dataset) == 12 and len(datamanager.eval_dataset) == 12
     names = {Path(p).name for p in datamanager.train_dataset.image_filenames}

@@ -79,15 +79,16 @@ def test_environment_variable_adds_a_method(tmp_path):
 def test_dotted_overrides_reach_the_config():
     config = parse_config([
         "kc-splatfacto", "--data", "demo", "--max-num-iterations", "300", "--pipeline.model.kc-weight", "1e-3",
-        "--pipeline.model.wavelet-weighting", "fine", "--pipeline.datamanager.downscale-factor", "4",
+        "--pipeline.model.wavelet-weighting", "fine",
         "--eval-at-steps", "0", "10", "100", "--machine.seed", "3", "--optimizers.means.optimizer.lr", "2e-4",
+        "auto", "--downscale-factor", "4",
     ])
     assert config.method_name == "kc-splatfacto"
     assert config.max_num_iterations == 300
     assert config.pipeline.model.kc_weight == 1e-3
     assert config.pipeline.model.cbc_weight == 1e-2  # untouched defaults stay the method's
     assert config.pipeline.model.wavelet_weighting == "fine"
-    assert config.pipeline.datamanager.downscale_factor == 4
+    assert config.pipeline.datamanager.dataparser.downscale_factor == 4
     assert config.eval_at_steps == (0, 10, 100)
     assert config.machine.seed == 3 and config.optimizers.means.optimizer.lr == 2e-4
     config.resolve_aliases()
@@ -96,6 +97,92 @@ def test_dotted_overrides_reach_the_config():
     assert discover_methods()["kc-splatfacto"].config.max_num_iterations == 30000
 
 
+def test_dataparser_is_a_subcommand_with_its_own_options(castle_p30):
+    from kc_splatfacto.data.colmap import ColmapDataParserConfig
+    from kc_splatfacto.data.spars3r import Spars3rDataParserConfig
+
+    config = parse_config(["kc-splatfacto", "--data", str(castle_p30), "--pipeline.model.kc-weight", "1e-4",
+                           "colmap", "--downscale-factor", "4", "--eval-mode", "all"])
+    parser = config.pipeline.datamanager.dataparser
+    assert type(parser) is ColmapDataParserConfig and parser.downscale_factor == 4 and parser.eval_mode == "all"
+    assert config.pipeline.model.kc_weight == 1e-4
+    config.resolve_aliases()
+    resolved = config.pipeline.datamanager.resolve_dataparser()
+    assert resolved.data == castle_p30 and resolved.eval_mode == "all"
+    assert config.pipeline.datamanager.dataparser.data != castle_p30  # the user's config is left as given
+    # no subcommand: detected, with the common options of `auto` handed on
+    auto = parse_config(["kc-splatfacto", "--data", str(castle_p30), "auto", "--downscale-factor", "2"])
+    auto.resolve_aliases()
+    detected = auto.pipeline.datamanager.resolve_dataparser()
+    assert type(detected) is Spars3rDataParserConfig and detected.downscale_factor == 2
+    with pytest.raises(SystemExit):  # a Literal choice field refuses other values
+        parse_config(["kc-splatfacto", "--data", str(castle_p30), "colmap", "--eval-mode", "sometimes"])
+
+
+def test_every_user_settable_field_has_a_help_line():
+    import dataclasses
+
+    from kc_splatfacto.registry import discover_dataparsers
+
+    def fields_without_help(cls, seen):
+        missing = []
+        if cls in seen:
+            return missing
+        seen.add(cls)
+        docs = _field_docs(cls)
+        for f in dataclasses.fields(cls):
+            default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+            if dataclasses.is_dataclass(default) and f.name != "dataparser":  # a group of fields, not a field
+                continue
+            if f.name not in docs:
+                missing.append(f"{cls.__name__}.{f.name}")
+        return missing
+
+    config = discover_methods()["kc-splatfacto"].config
+    classes = [type(config), type(config.machine), type(config.logging), type(config.pipeline),
+               type(config.pipeline.datamanager), type(config.pipeline.model)]
+    classes += [type(spec.config) for spec in discover_dataparsers().values()]
+    seen: set = set()
+    missing = [m for cls in classes for m in fields_without_help(cls, seen)]
+    assert not missing, missing
+
+
+def _field_docs(cls) -> set[str]:
+    """Names of the fields of ``cls`` (and its dataclass bases) followed by a docstring line, as tyro reads them."""
+    import ast
+    import inspect
+
+    documented = set()
+    for klass in cls.__mro__:
+        try:
+            tree = ast.parse(inspect.getsource(klass))
+        except (OSError, TypeError):
+            continue
+        body = tree.body[0].body
+        for node, after in zip(body, body[1:]):
+            if isinstance(node, ast.AnnAssign) and isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant):
+                documented.add(node.target.id)
+    return documented
+
+
 def test_unknown_option_is_rejected():
     with pytest.raises(SystemExit):
         parse_config(["kc-splatfacto", "--pipeline.model.no-such-weight", "1"])
+
+
+def test_kc_bench_set_goes_through_kc_trains_parser():
+    from pathlib import Path
+
+    from kc_splatfacto.cli.bench import build_run_config
+
+    spec = discover_methods()["kc-splatfacto"].config
+    common = dict(method="kc-splatfacto", data=Path("demo"), seed=1, max_steps=10, eval_steps=(1, 10),
+                  runs_dir=Path("runs"), experiment="e", downscale_factor=2, steps_scale=0.1, device="cpu")
+    config = build_run_config(spec, **common, overrides=[
+        "pipeline.model.num_downscales=0", "pipeline.model.wavelet_weighting=fine", "eval_at_steps=0 5"])
+    assert config.pipeline.model.num_downscales == 0 and config.pipeline.model.wavelet_weighting == "fine"
+    assert config.eval_at_steps == (0, 5) and config.pipeline.datamanager.dataparser.downscale_factor == 2
+    assert spec.pipeline.model.wavelet_weighting == "paper"  # the registered config is untouched
+    for bad in ("pipeline.model.wavelet_weighting=coarse", "pipeline.model.no_such_field=1", "missing-equals"):
+        with pytest.raises(ValueError, match="--set"):
+            build_run_config(spec, **common, overrides=[bad])

@@ -48,42 +48,20 @@ def log_spaced_steps(max_steps: int, num: int) -> tuple[int, ...]:
     return tuple(int(s) for s in sorted(set(steps.tolist()) | {max_steps}))
 
 
-def _coerce(text: str, current: Any) -> Any:
-    """Parse ``text`` to the type of the field's current value (bool/int/float/Path/str/None, tuples of ints)."""
-    if isinstance(current, bool):
-        if text.lower() not in ("true", "false", "1", "0"):
-            raise ValueError(f"expected true/false, got '{text}'")
-        return text.lower() in ("true", "1")
-    if isinstance(current, int):
-        return int(text)
-    if isinstance(current, float):
-        return float(text)
-    if isinstance(current, Path):
-        return Path(text)
-    if isinstance(current, tuple):
-        return tuple(int(v) for v in text.split(",") if v)
-    if current is None:
-        try:
-            return json.loads(text)
-        except json.JSONDecodeError:
-            return text
-    return text
+def apply_override(config: Any, assignment: str) -> Any:
+    """``config`` with one dotted field set from ``'pipeline.model.kc_weight=1e-4'``, parsed by kc-train's own
+    parser (:func:`kc_splatfacto.cli.train.override_config`): the same flags, types, choices and errors as
+    ``kc-train METHOD --pipeline.model.kc-weight 1e-4``. Several values (a tuple field) are separated by spaces."""
+    from kc_splatfacto.cli.train import override_config
 
-
-def apply_override(config: Any, assignment: str) -> None:
-    """Set a dotted field of a config from ``'pipeline.model.kc_weight=1e-4'`` (dashes read as underscores)."""
     key, sep, value = assignment.partition("=")
-    if not sep:
+    if not sep or not key.strip():
         raise ValueError(f"--set '{assignment}': expected dotted.field=value")
-    parts = key.strip().replace("-", "_").split(".")
-    target = config
-    for part in parts[:-1]:
-        if not hasattr(target, part):
-            raise ValueError(f"--set '{assignment}': {type(target).__name__} has no field '{part}'")
-        target = getattr(target, part)
-    if not hasattr(target, parts[-1]):
-        raise ValueError(f"--set '{assignment}': {type(target).__name__} has no field '{parts[-1]}'")
-    setattr(target, parts[-1], _coerce(value.strip(), getattr(target, parts[-1])))
+    flag = "--" + key.strip().replace("_", "-")
+    try:
+        return override_config(config, [flag, *value.split()])
+    except SystemExit as exc:  # tyro printed why (unknown field, wrong type, not a choice)
+        raise ValueError(f"--set '{assignment}': not a valid override of the {config.method_name} config") from exc
 
 
 def build_run_config(
@@ -102,15 +80,17 @@ def build_run_config(
     overrides: Sequence[str] = (),
 ) -> Any:
     """A fresh TrainerConfig for one bench run (the registered config is never modified)."""
+    from kc_splatfacto.data.detect import AutoDataParserConfig
+
     config = copy.deepcopy(spec_config)
     config.method_name = method
     config.experiment_name = experiment
     config.output_dir = runs_dir
     config.timestamp = f"seed{seed}"
     config.pipeline.datamanager.data = Path(data)
-    config.pipeline.datamanager.dataparser = None  # detected from data
+    config.pipeline.datamanager.dataparser = AutoDataParserConfig()  # detected from data
     if downscale_factor is not None:
-        config.pipeline.datamanager.downscale_factor = downscale_factor
+        config.pipeline.datamanager.dataparser.downscale_factor = downscale_factor
     config.max_num_iterations = max_steps
     config.eval_at_steps = tuple(eval_steps)
     config.steps_per_eval_all_images = 0  # only the log-spaced steps (and the last one)
@@ -121,7 +101,7 @@ def build_run_config(
     if steps_scale is not None:
         config.pipeline.model.steps_scale = steps_scale
     for assignment in overrides:
-        apply_override(config, assignment)
+        config = apply_override(config, assignment)
     return config
 
 

@@ -5,8 +5,12 @@ Methods come from the ``kc_splatfacto.method_configs`` entry points and ``KC_SPL
 ``kc-train METHOD --help`` every field of its config. Examples::
 
     kc-train kc-splatfacto --data demo
-    kc-train kc-splatfacto --data ../shared/data/castle-P30 --pipeline.datamanager.downscale-factor 4 \\
-        --max-num-iterations 3000 --pipeline.model.steps-scale 0.1 --pipeline.model.kc-weight 1e-3
+    kc-train kc-splatfacto --data ../shared/data/castle-P30 --max-num-iterations 3000 \\
+        --pipeline.model.steps-scale 0.1 --pipeline.model.kc-weight 1e-3 spars3r --downscale-factor 4
+    kc-train kc-splatfacto --data SCENE colmap --downscale-factor 4 --eval-mode interval
+
+The dataparser is a subcommand after the method's options (``auto``, the default, detects the format from
+``--data``); ``kc-train METHOD DATAPARSER --help`` lists its options.
     kc-train kc-splatfacto --data demo --load-dir outputs/demo/kc-splatfacto/<timestamp>/nerfstudio_models
 """
 
@@ -15,6 +19,7 @@ from __future__ import annotations
 import copy
 import os
 import sys
+from typing import Any
 
 # Before torch loads (it is imported lazily below): OpenMP's default spin-waiting threads fight the rasterizer's
 # numba threads and make a step ~20x slower on small machines.
@@ -34,10 +39,24 @@ def parse_config(argv: list[str]):
         raise SystemExit("kc-train: no methods registered (is kc-splatfacto installed? `pip install -e .`)")
     defaults = {name: copy.deepcopy(spec.config) for name, spec in methods.items()}
     descriptions = {name: spec.description for name, spec in methods.items()}
-    union = tyro.conf.SuppressFixed[
-        tyro.conf.FlagConversionOff[tyro.extras.subcommand_type_from_defaults(defaults, descriptions)]
-    ]
+    union = _markers(tyro.extras.subcommand_type_from_defaults(defaults, descriptions))
     return tyro.cli(union, args=argv, description=DESCRIPTION)
+
+
+def _markers(config_type: Any) -> Any:
+    """The tyro conventions of every kc-train command line (fixed fields hidden, booleans take a value)."""
+    import tyro
+
+    return tyro.conf.SuppressFixed[tyro.conf.FlagConversionOff[config_type]]
+
+
+def override_config(config: Any, args: list[str]) -> Any:
+    """A copy of ``config`` with kc-train's dotted flags applied (``["--pipeline.model.kc-weight", "1e-4"]``):
+    the one override path, shared by kc-bench's ``--set``."""
+    import tyro
+
+    return tyro.cli(_markers(type(config)), default=copy.deepcopy(config), args=list(args),
+                    description=DESCRIPTION)
 
 
 def entrypoint(argv: list[str] | None = None) -> int:

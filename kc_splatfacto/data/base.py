@@ -17,7 +17,7 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -54,9 +54,9 @@ class DataParserConfig:
     """Scene folder (or file, for formats that allow it)."""
     downscale_factor: int = 1
     """Integer image downscale; resized copies are cached in ``images_N/`` (see ``cache_dir``)."""
-    orientation_method: str = "up"
+    orientation_method: Literal["up", "none"] = "up"
     """nerfstudio's orientation: "up" (mean camera up -> +z) or "none"."""
-    center_method: str = "poses"
+    center_method: Literal["poses", "none"] = "poses"
     """nerfstudio's centring: "poses" (mean camera centre -> origin) or "none"."""
     auto_scale_poses: bool = True
     """Scale so the largest absolute camera coordinate is 1 (nerfstudio's ``auto_scale_poses``)."""

@@ -24,6 +24,7 @@ import math
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
@@ -452,7 +453,7 @@ class ColmapDataParserConfig(DataParserConfig):
     """Image folder, relative to ``data``."""
     colmap_path: Path | None = None
     """Model folder relative to ``data``; None tries sparse/0, colmap/sparse/0, sparse."""
-    eval_mode: str = "interval"
+    eval_mode: Literal["interval", "fraction", "filename", "all"] = "interval"
     """"interval", "fraction", "filename" or "all" (nerfstudio's)."""
     eval_interval: int = 8
     """Every ``eval_interval``-th image is eval (eval_mode "interval")."""

@@ -389,7 +389,9 @@ class DemoSceneSpec:
 
     seed: int = 0
     width: int = 160
+    """image width in pixels"""
     height: int = 120
+    """image height in pixels"""
     num_cameras: int = 24
     num_points: int = 2000
     point_noise: float = 0.01
@@ -466,7 +468,9 @@ class DemoDataParserConfig(Spars3rDataParserConfig):
     seed: int = 0
     """Generator seed: the same seed gives identical images, cameras and points."""
     width: int = 160
+    """image width in pixels"""
     height: int = 120
+    """image height in pixels"""
     num_cameras: int = 24
     """Cameras on the arc; even positions train, odd test."""
     num_points: int = 2000

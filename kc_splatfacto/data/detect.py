@@ -1,11 +1,14 @@
-"""Which dataparser reads a scene: detection from the folder, or a registered name (``--dataparser NAME``)."""
+"""Which dataparser reads a scene: detection from the folder (the ``auto`` subcommand, the default), or a registered
+dataparser chosen by its subcommand name (``kc-train METHOD --data SCENE colmap ...``)."""
 
 from __future__ import annotations
 
 import copy
+import dataclasses
+from dataclasses import dataclass
 from pathlib import Path
 
-from kc_splatfacto.data.base import DataParserConfig, DataParserError
+from kc_splatfacto.data.base import DataParser, DataParserConfig, DataParserError
 from kc_splatfacto.data.colmap import DEFAULT_MODEL_DIRS, has_model
 from kc_splatfacto.data.spars3r import is_spars3r_scene
 from kc_splatfacto.registry import discover_dataparsers
@@ -32,7 +35,8 @@ def detect_format(data: Path) -> str:
         return "colmap"
     raise DataParserError(
         f"cannot tell the format of {data}: expected train_list.txt + test_list.txt + images/ (SPARS3R), "
-        f"transforms.json (nerfstudio), or images/ + sparse/0/ (COLMAP); or force one with --dataparser NAME"
+        f"transforms.json (nerfstudio), or images/ + sparse/0/ (COLMAP); or name the dataparser as a subcommand "
+        f"after the method's options (`kc-train kc-splatfacto --data SCENE colmap`)"
     )
 
 
@@ -54,3 +58,18 @@ def resolve_dataparser(data: str | Path, name: str | None = None) -> DataParserC
     if name != DEMO_NAME:
         config.data = path
     return config
+
+
+@dataclass
+class AutoDataParserConfig(DataParserConfig):
+    """The dataparser detected from ``data`` (SPARS3R, transforms.json, COLMAP, or 'demo'), with this config's common
+    options (downscale, orientation, centring, scaling, cache folder) handed to it: the default subcommand."""
+
+    def resolve(self) -> DataParserConfig:
+        """The detected dataparser's config, carrying the common options set here."""
+        config = resolve_dataparser(self.data)
+        common = {f.name: getattr(self, f.name) for f in dataclasses.fields(DataParserConfig) if f.name != "data"}
+        return dataclasses.replace(config, **common)
+
+    def setup(self) -> DataParser:
+        return self.resolve().setup()

@@ -28,6 +28,7 @@ import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
@@ -54,10 +55,12 @@ SUPPORTED_TRANSFORMS_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "PERSPECTI
 class TransformsDataParserConfig(DataParserConfig):
     """A nerfstudio ``transforms.json`` scene (see the module docstring)."""
 
-    eval_mode: str = "interval"
+    eval_mode: Literal["interval", "fraction", "filename", "all"] = "interval"
     """Split without explicit lists: "interval", "fraction", "filename" or "all" (as the COLMAP parser)."""
     eval_interval: int = 8
+    """Every ``eval_interval``-th image is eval (eval_mode "interval")."""
     train_split_fraction: float = 0.9
+    """Fraction of images for training (eval_mode "fraction")."""
     load_3d_points: bool = True
     """Seed points from ``ply_file_path`` when the file names one."""
 

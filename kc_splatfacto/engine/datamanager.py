@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import dataclasses
 import random
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import torch
 import tyro
@@ -17,35 +17,56 @@ from kc_splatfacto.data.base import write_dataparser_transforms
 from kc_splatfacto.data.dataset import ImageDataset
 
 
+def dataparser_subcommands() -> Any:
+    """The ``dataparser`` field's type: one tyro subcommand per registered dataparser, plus ``auto`` (detect the
+    format from ``--data``), without the ``pipeline.datamanager.dataparser`` prefix (nerfstudio's
+    ``AnnotatedDataParserUnion``): ``kc-train kc-splatfacto --data SCENE colmap --downscale-factor 4``."""
+    from kc_splatfacto.data.detect import AutoDataParserConfig
+    from kc_splatfacto.registry import discover_dataparsers
+
+    specs = discover_dataparsers()
+    defaults = {"auto": AutoDataParserConfig(), **{name: spec.config for name, spec in specs.items()}}
+    descriptions = {"auto": "detect the format from --data (the default)",
+                    **{name: spec.description for name, spec in specs.items()}}
+    return tyro.conf.OmitSubcommandPrefixes[
+        tyro.extras.subcommand_type_from_defaults(defaults, descriptions, prefix_names=False)
+    ]
+
+
+DataParserUnion = dataparser_subcommands()
+
+
+def _auto_dataparser() -> Any:
+    from kc_splatfacto.data.detect import AutoDataParserConfig
+
+    return AutoDataParserConfig()
+
+
 @dataclass
 class DataManagerConfig:
     """Which scene to load and how; ``setup()`` builds the :class:`DataManager`."""
 
     data: Path | None = None
-    """scene folder, or 'demo' for the generated demo scene"""
-    dataparser: tyro.conf.Suppress[Any] = None
-    """a dataparser config (detected from ``data`` when None)"""
-    dataparser_name: str | None = None
-    """force a registered dataparser by name instead of detecting the format"""
-    downscale_factor: int | None = None
-    """image downscale factor handed to the dataparser (None keeps the dataparser's own)"""
-    eval_split: str = "test"
+    """scene folder, or 'demo' for the generated demo scene (given to the dataparser)"""
+    dataparser: DataParserUnion = field(default_factory=_auto_dataparser)
+    """the dataparser config: a subcommand after the method's options (default: auto, detected from ``data``)"""
+    eval_split: Literal["test", "val", "train"] = "test"
     """split evaluated during and after training"""
 
     def resolve_dataparser(self) -> Any:
-        """The dataparser config to use: the explicit one, else detected from ``data``; downscale applied.
+        """The concrete dataparser config to use: ``data`` handed to the chosen one, ``auto`` detected.
 
         Returns a new config; this one is left as the user wrote it.
         """
-        parser_config = self.dataparser
-        if parser_config is None:
-            if self.data is None:
-                raise ValueError("no scene given: pass --data PATH (a scene folder, or 'demo' for the demo scene)")
-            from kc_splatfacto.data import resolve_dataparser
+        from kc_splatfacto.data.detect import AutoDataParserConfig
 
-            parser_config = resolve_dataparser(self.data, self.dataparser_name)
-        if self.downscale_factor is not None and dataclasses.is_dataclass(parser_config):
-            parser_config = dataclasses.replace(parser_config, downscale_factor=self.downscale_factor)
+        parser_config = self.dataparser
+        if self.data is None and isinstance(parser_config, AutoDataParserConfig) and parser_config.data == Path("."):
+            raise ValueError("no scene given: pass --data PATH (a scene folder, or 'demo' for the demo scene)")
+        if self.data is not None:
+            parser_config = dataclasses.replace(parser_config, data=Path(self.data))
+        if isinstance(parser_config, AutoDataParserConfig):
+            parser_config = parser_config.resolve()
         return parser_config
 
     def setup(self, seed: int = 42) -> DataManager:
@@ -69,7 +90,8 @@ class DataManager:
         self.train_dataset = ImageDataset(self.train_outputs)
         self.eval_dataset = ImageDataset(self.eval_outputs)
         if len(self.train_dataset) == 0:
-            raise ValueError(f"the train split of {config.data} is empty: a scene needs at least one training image")
+            raise ValueError(f"the train split of {self.dataparser_config.data} is empty: a scene needs at least one "
+                             "training image")
         self._rng = random.Random(seed)
         self._unseen: list[int] = []
 

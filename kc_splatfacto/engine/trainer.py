@@ -97,7 +97,7 @@ class TrainerConfig:
             data = self.pipeline.datamanager.data
             if data is None:  # a dataparser config given directly (kc-bench, tests): its scene folder
                 data = getattr(self.pipeline.datamanager.dataparser, "data", None)
-            experiment = Path(str(data)).name if data is not None else "unnamed"
+            experiment = (Path(str(data)).name if data is not None else "") or "unnamed"
         timestamp = self.timestamp
         if timestamp == "{timestamp}":
             timestamp = datetime.datetime.now().strftime(TIMESTAMP_FORMAT)

@@ -17,7 +17,8 @@ from kc_splatfacto.metrics import SSIM_WINDOW, _check_pair, mean_ssim
 def l1(pred: Tensor, gt: Tensor) -> Tensor:
     """Mean absolute error (scalar)."""
     _check_pair(pred, gt)
-    return (pred - gt).abs().mean()
+    # gt first: the difference takes gt's memory layout (the reduction order, hence the last bits, follow it)
+    return (gt - pred).abs().mean()
 
 
 def dssim(pred: Tensor, gt: Tensor, window_size: int = SSIM_WINDOW) -> Tensor:

@@ -32,6 +32,19 @@ FREQUENCY_LOSS_FIELDS = ("wavelet_weight", "kc_weight", "cbc_weight", "wave", "w
 """the config fields that build the FrequencyLoss (its parameters have the same names)"""
 
 
+@dataclass(frozen=True)
+class StepSchedule:
+    """The model config's step counts after ``steps_scale`` (each at least 1); ``reset_alpha_every`` in steps."""
+
+    warmup_length: int
+    refine_every: int
+    reset_alpha_every: int
+    resolution_schedule: int
+    sh_degree_interval: int
+    stop_screen_size_at: int
+    stop_split_at: int
+
+
 @dataclass
 class SplatfactoModelConfig:
     """Splatfacto 1.1.5's defaults, plus KC-3DGS's frequency-domain losses (off by default)."""
@@ -43,7 +56,10 @@ class SplatfactoModelConfig:
     resolution_schedule: int = 3000
     """training starts at 1/2^num_downscales resolution; every this many steps the resolution doubles"""
     background_color: Literal["random", "black", "white"] = "random"
+    """background the render is composited over in training ('random': a new colour every step, viser's grey
+    outside training); RGBA ground truth is composited over the same one"""
     num_downscales: int = 2
+    """training starts at 1/2^num_downscales resolution (see resolution_schedule)"""
     cull_alpha_thresh: float = 0.1
     """opacity below which Gaussians are culled"""
     cull_scale_thresh: float = 0.5
@@ -57,6 +73,7 @@ class SplatfactoModelConfig:
     densify_size_thresh: float = 0.01
     """below this size (x scene scale) Gaussians are duplicated, otherwise split"""
     n_split_samples: int = 2
+    """number of Gaussians a split Gaussian becomes"""
     max_num_gaussians: int | None = 2_000_000
     """cap on densification (not in Splatfacto): beyond it only the highest-gradient candidates grow; None: no cap"""
     sh_degree_interval: int = 1000
@@ -68,16 +85,25 @@ class SplatfactoModelConfig:
     stop_screen_size_at: int = 4000
     """stop culling/splitting by screen size at this step"""
     random_init: bool = False
+    """initialize randomly even when the scene has seed points"""
     num_random: int = 50000
+    """number of random initial Gaussians (random_init, or a scene without points)"""
     random_scale: float = 10.0
     """side (x scene scale) of the cube random initial Gaussians fill"""
     ssim_lambda: float = 0.2
+    """weight of the D-SSIM term in the main loss (1 - ssim_lambda) L1 + ssim_lambda (1 - SSIM)"""
     stop_split_at: int = 15000
+    """stop densification (splitting and duplication) at this step"""
     sh_degree: int = 3
+    """maximum degree of the spherical harmonics of the colours (0: plain RGB)"""
     use_scale_regularization: bool = False
+    """PhysGaussian's scale regularization (penalizes max/min scale ratios above max_gauss_ratio)"""
     max_gauss_ratio: float = 10.0
+    """largest max/min scale ratio the scale regularization tolerates"""
     output_depth_during_training: bool = False
+    """render the expected depth in training too (evaluation always renders it)"""
     rasterize_mode: Literal["classic", "antialiased"] = "classic"
+    """'antialiased': gsplat's 2D filter with opacity compensation (Mip-Splatting), 'classic': 3DGS's"""
     rasterization_backend: Literal["auto", "cpu", "torch", "gsplat"] = "auto"
     """'auto': gsplat on CUDA when installed, the numba CPU rasterizer otherwise"""
     steps_scale: float = 1.0
@@ -88,19 +114,38 @@ class SplatfactoModelConfig:
     """weight of the kurtosis-concentration loss (KC-3DGS: 1e-5)"""
     cbc_weight: float = 0.0
     """weight of the cross-band covariance loss (KC-3DGS: 1e-2)"""
-    wave: str = "db3"
+    wave: Literal["haar", "db1", "db2", "db3", "db4", "db5", "db6", "db7", "db8", "db9", "db10"] = "db3"
+    """orthogonal Daubechies wavelet of the DWT (KC-3DGS: db3)"""
     wavelet_levels: int = 3
-    wavelet_mode: str = "symmetric"
+    """DWT levels (fewer where the image is too small for them, with a warning)"""
+    wavelet_mode: Literal["symmetric", "reflect", "zero", "periodization"] = "symmetric"
+    """DWT boundary extension (pywt's names; docs/losses.md measures why symmetric)"""
     wavelet_weighting: Literal["paper", "fine", "uniform"] = "paper"
     """per-level weights of the wavelet L1: 'paper' 2^j (j=1 finest), 'fine' 2^(J-j+1), 'uniform' 1"""
     kc_supervised: bool = True
+    """KC compares the render's band kurtosis with the GT's (False: the unsupervised spread of the render alone)"""
     cbc_supervised: bool = True
+    """CBC compares the render's cross-band covariance with the GT's (False: the render's alone)"""
     cbc_correlation: bool = False
     """CBC on correlations instead of covariances (the 'scaled CBC' ablation)"""
 
     def scaled(self, steps: int) -> int:
         """A step count compressed by ``steps_scale`` (at least 1)."""
         return max(1, int(round(steps * self.steps_scale)))
+
+    def step_schedule(self) -> StepSchedule:
+        """Every step-based schedule with ``steps_scale`` applied (once: the model reads only this)."""
+        if not self.steps_scale > 0:
+            raise ValueError(f"steps_scale must be > 0, got {self.steps_scale}")
+        return StepSchedule(
+            warmup_length=self.scaled(self.warmup_length),
+            refine_every=self.scaled(self.refine_every),
+            reset_alpha_every=self.scaled(self.reset_alpha_every * self.refine_every),
+            resolution_schedule=self.scaled(self.resolution_schedule),
+            sh_degree_interval=self.scaled(self.sh_degree_interval),
+            stop_screen_size_at=self.scaled(self.stop_screen_size_at),
+            stop_split_at=self.scaled(self.stop_split_at),
+        )
 
     def setup(
         self,
@@ -177,9 +222,8 @@ class SplatfactoModel(torch.nn.Module):
         seed_points: tuple[torch.Tensor, torch.Tensor | None] | None = None,
     ):
         super().__init__()
-        if config.steps_scale <= 0:
-            raise ValueError(f"steps_scale must be > 0, got {config.steps_scale}")
         self.config = config
+        self.schedule = schedule = config.step_schedule()
         self.scene_scale = float(scene_scale)
         self.num_train_data = int(num_train_data)
         use_seed = seed_points is not None and not config.random_init
@@ -191,8 +235,8 @@ class SplatfactoModel(torch.nn.Module):
             num_random=config.num_random,
             random_scale=config.random_scale,
         )
-        refine_every = config.scaled(config.refine_every)
-        reset_every = config.scaled(config.reset_alpha_every * config.refine_every)
+        refine_every = schedule.refine_every
+        reset_every = schedule.reset_alpha_every
         self.strategy = DefaultStrategy(
             prune_opa=config.cull_alpha_thresh,
             grow_grad2d=config.densify_grad_thresh,
@@ -200,9 +244,9 @@ class SplatfactoModel(torch.nn.Module):
             grow_scale2d=config.split_screen_size,
             prune_scale3d=config.cull_scale_thresh,
             prune_scale2d=config.cull_screen_size,
-            refine_scale2d_stop_iter=config.scaled(config.stop_screen_size_at),
-            refine_start_iter=config.scaled(config.warmup_length),
-            refine_stop_iter=config.scaled(config.stop_split_at),
+            refine_scale2d_stop_iter=schedule.stop_screen_size_at,
+            refine_start_iter=schedule.warmup_length,
+            refine_stop_iter=schedule.stop_split_at,
             reset_every=reset_every,
             refine_every=refine_every,
             # Splatfacto waits one pass over the training images after a reset; under heavy step compression that
@@ -286,13 +330,13 @@ class SplatfactoModel(torch.nn.Module):
         return self.background_color.to(self.device)
 
     def sh_degree_to_use(self) -> int:
-        return min(self.step // self.config.scaled(self.config.sh_degree_interval), self.config.sh_degree)
+        return min(self.step // self.schedule.sh_degree_interval, self.config.sh_degree)
 
     def get_downscale_factor(self) -> int:
         """Training resolution divisor: 2^num_downscales at the start, halved every ``resolution_schedule`` steps."""
         if not self.training:
             return 1
-        return 2 ** max(self.config.num_downscales - self.step // self.config.scaled(self.config.resolution_schedule), 0)
+        return 2 ** max(self.config.num_downscales - self.step // self.schedule.resolution_schedule, 0)
 
     # ----------------------------------------------------------------------------------------------- rendering
     def get_outputs(self, camera: Cameras) -> dict[str, torch.Tensor | None]:
