@@ -4,8 +4,6 @@ PYTHON ?= python3
 VENV ?= .venv
 TORCH ?= torch==2.13.0
 PY := $(VENV)/bin/python
-# Default OpenMP spin-waiting makes small torch ops ~100x slower on small VMs.
-export OMP_WAIT_POLICY ?= PASSIVE
 
 .PHONY: install test demo bench clean
 

@@ -11,7 +11,7 @@ prints a table (ms per step) and the kc/splatfacto ratio (target <= 1.10x).
 
 import os
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+import kc_splatfacto  # noqa: E402,F401  (sets OMP_WAIT_POLICY before torch loads)
 
 import argparse  # noqa: E402
 import statistics  # noqa: E402

@@ -12,7 +12,7 @@ dwt2 forward+backward.
 
 import os
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads: spin-waiting threads distort timings
+import kc_splatfacto  # noqa: E402,F401  (sets OMP_WAIT_POLICY before torch loads)
 
 import argparse  # noqa: E402
 import statistics  # noqa: E402

@@ -20,8 +20,7 @@ from __future__ import annotations
 
 import os
 
-# before torch is imported anywhere: spin-waiting OpenMP threads make small ops ~100x slower on small VMs
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+import kc_splatfacto  # noqa: E402,F401  (sets OMP_WAIT_POLICY before torch loads)
 
 import argparse  # noqa: E402
 import json  # noqa: E402

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import os
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+import kc_splatfacto  # noqa: E402,F401  (sets OMP_WAIT_POLICY before torch loads)
 
 import argparse  # noqa: E402
 import tempfile  # noqa: E402
@@ -22,7 +22,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 from kc_splatfacto.cli.bench import build_run_config  # noqa: E402
-from kc_splatfacto.engine.report import read_metrics_jsonl  # noqa: E402
+from kc_splatfacto.engine.metrics_log import read_metrics  # noqa: E402
 from kc_splatfacto.engine.trainer import PHASES, Trainer  # noqa: E402
 from kc_splatfacto.registry import discover_methods  # noqa: E402
 
@@ -51,7 +51,7 @@ def main() -> None:
                 cpu0 = time.process_time()
                 run_dir = Path(trainer.train())
                 cpu = time.process_time() - cpu0
-                train = [r for r in read_metrics_jsonl(run_dir / "metrics.jsonl") if r.get("kind") == "train"]
+                train = [r for r in read_metrics(run_dir / "metrics.jsonl") if r.get("kind") == "train"]
                 steps = max(trainer.phase_steps, 1)
                 results[method].append(
                     {

@@ -11,7 +11,7 @@ Target: a kc-splatfacto step at most 1.10x a splatfacto step.
 
 import os
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads: spin-waiting threads distort timings
+import kc_splatfacto  # noqa: E402,F401  (sets OMP_WAIT_POLICY before torch loads)
 
 import argparse  # noqa: E402
 import copy  # noqa: E402

@@ -5,7 +5,7 @@
 
 import os
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+import kc_splatfacto  # noqa: E402,F401  (sets OMP_WAIT_POLICY before torch loads)
 
 import argparse  # noqa: E402
 import sys  # noqa: E402

@@ -2,8 +2,7 @@
 
 import os
 
-# Set before torch (and its OpenMP runtime) is imported anywhere: spin-waiting threads make small ops ~100x slower.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+import kc_splatfacto  # noqa: E402,F401  (sets OMP_WAIT_POLICY before torch loads)
 
 from pathlib import Path  # noqa: E402
 

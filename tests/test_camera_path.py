@@ -8,7 +8,7 @@ import torch
 from scipy.spatial.transform import Rotation, Slerp
 
 from kc_splatfacto.data.outputs import Cameras
-from kc_splatfacto.engine.camera_path import (
+from kc_splatfacto.analysis.camera_path import (
     interpolate_camera_path,
     rotmat_to_quat,
     slerp,

@@ -8,7 +8,7 @@ import pytest
 import pywt
 import torch
 
-from kc_splatfacto.engine import diagnostics
+from kc_splatfacto.analysis import diagnostics
 
 
 def _images(seed: int = 0, size: tuple[int, int] = (48, 64)):

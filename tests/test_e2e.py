@@ -13,7 +13,7 @@ import torch
 from kc_splatfacto.data import resolve_dataparser
 from kc_splatfacto.data.detect import AutoDataParserConfig
 from kc_splatfacto.engine.evaluation import evaluate_split
-from kc_splatfacto.engine.logging import read_metrics
+from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.run_io import load_run
 from kc_splatfacto.engine.trainer import Trainer
 from tests.training_utils import tiny_demo_config
@@ -59,7 +59,7 @@ def test_castle_p30_short_run_raises_test_psnr(tmp_path, castle_p30):
 
 
 def cli_env():
-    return dict(os.environ, COLUMNS="200", OMP_WAIT_POLICY="PASSIVE")
+    return dict(os.environ, COLUMNS="200")
 
 
 def test_kc_train_command_prints_metrics_and_output_folder(tmp_path):

@@ -3,7 +3,7 @@
 import cv2
 import numpy as np
 
-from kc_splatfacto.engine.figures import pyplot, save_figure
+from kc_splatfacto.analysis.figures import pyplot, save_figure
 
 
 def test_save_figure_writes_a_png_and_closes_the_figure(tmp_path):

@@ -18,7 +18,7 @@ import torch
 from kc_splatfacto.data.demo import DemoSceneSpec, ensure_demo_scene
 from kc_splatfacto.data.spars3r import Spars3rDataParserConfig
 from kc_splatfacto.engine.checkpoints import find_checkpoint, load_checkpoint
-from kc_splatfacto.engine.logging import read_metrics
+from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.trainer import Trainer
 from tests.training_utils import TINY_HEIGHT, TINY_WIDTH, tiny_demo_config
 

@@ -9,7 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from kc_splatfacto.engine import report
+from kc_splatfacto.analysis import report
+from kc_splatfacto.engine.metrics_log import read_metrics
 
 
 def _fake_runs(tmp_path):
@@ -30,7 +31,7 @@ def _fake_runs(tmp_path):
             path = tmp_path / method / str(seed) / "metrics.jsonl"
             path.parent.mkdir(parents=True)
             path.write_text("\n".join(json.dumps(r) for r in records) + "\n")
-            rows += report.eval_rows(report.read_metrics_jsonl(path), "scene", method, seed, path.parent)
+            rows += report.eval_rows(read_metrics(path), "scene", method, seed, path.parent)
     return rows, truth
 
 
@@ -96,10 +97,10 @@ def test_write_report_files_decode(tmp_path):
 
 def test_bad_logs(tmp_path):
     with pytest.raises(FileNotFoundError, match="metrics.jsonl"):
-        report.read_metrics_jsonl(tmp_path / "metrics.jsonl")
+        read_metrics(tmp_path / "metrics.jsonl")
     (tmp_path / "metrics.jsonl").write_text('{"kind": "eval", "step": 1}\n{"kind": "ev')
     with pytest.raises(ValueError, match="metrics.jsonl:2"):
-        report.read_metrics_jsonl(tmp_path / "metrics.jsonl")
+        read_metrics(tmp_path / "metrics.jsonl")
     with pytest.raises(KeyError, match="elapsed_s"):
         report.eval_rows([{"kind": "eval", "step": 1}], "s", "m", 0)
     with pytest.raises(ValueError, match="no evaluation rows"):

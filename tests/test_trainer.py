@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from kc_splatfacto.engine.checkpoints import list_checkpoints
-from kc_splatfacto.engine.logging import read_metrics
+from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.trainer import Trainer, TrainingDivergedError
 from kc_splatfacto.model.strategy import NoGaussiansLeftError
 from tests.training_utils import tiny_demo_config

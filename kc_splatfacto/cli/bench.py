@@ -1,7 +1,7 @@
 """``kc-bench``: quality against training time for several methods, scenes and seeds under one step budget.
 
 Each (scene, method, seed) is one ordinary training run through :class:`Trainer`, evaluated on the test split at
-log-spaced steps (``eval_at_steps``); the report (:mod:`kc_splatfacto.engine.report`) then writes, under
+log-spaced steps (``eval_at_steps``); the report (:mod:`kc_splatfacto.analysis.report`) then writes, under
 ``--output-dir``: ``evals.csv`` / ``evals.json`` (every evaluation), ``summary.json``, ``results.md`` (final metrics
 with deltas vs the baseline, also per seed), ``<metric>_vs_time.png``, ``kurtosis_gap_<scene>.png`` (the render-vs-GT
 band-kurtosis gap over training) and ``command.txt`` (the exact command line). The report is
@@ -17,9 +17,6 @@ Example (the committed castle-P30 result)::
 
 from __future__ import annotations
 
-import os
-
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads: spin-waiting threads slow small ops
 
 import argparse
 import copy
@@ -106,20 +103,21 @@ def build_run_config(
 
 
 def _finished(run_dir: Path, max_steps: int) -> bool:
-    from kc_splatfacto.engine.report import read_metrics_jsonl
+    from kc_splatfacto.engine.metrics_log import read_metrics
 
     log = run_dir / "metrics.jsonl"
     if not log.is_file():
         return False
     try:
-        records = read_metrics_jsonl(log)
+        records = read_metrics(log)
     except ValueError:
         return False
     return any(r.get("kind") == "eval" and int(r.get("step", -1)) == max_steps for r in records)
 
 
 def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
-    from kc_splatfacto.engine.report import eval_rows, read_metrics_jsonl, write_report
+    from kc_splatfacto.analysis.report import eval_rows, write_report
+    from kc_splatfacto.engine.metrics_log import read_metrics
     from kc_splatfacto.engine.trainer import Trainer
     from kc_splatfacto.registry import discover_methods
 
@@ -159,7 +157,7 @@ def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
                     run_dir, status = expected_dir, "reused"
                 else:
                     run_dir, status = Path(Trainer(config).train()), "trained"
-                records = read_metrics_jsonl(run_dir / "metrics.jsonl")
+                records = read_metrics(run_dir / "metrics.jsonl")
                 new_rows = eval_rows(records, scene, method, seed, run_dir)
                 rows += new_rows
                 lpips_note = lpips_note or next(
@@ -185,15 +183,15 @@ def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
 
 def write_kurtosis_gap_plots(runs: Sequence[dict], out_dir: Path) -> dict[str, Path]:
     """Per scene, ``kurtosis_gap_<scene>.png``: the render-vs-GT band-kurtosis gap over training, one curve per
-    method, for the lowest seed (see :func:`kc_splatfacto.engine.diagnostics.plot_kurtosis_gap_comparison`)."""
-    from kc_splatfacto.engine.diagnostics import plot_kurtosis_gap_comparison
-    from kc_splatfacto.engine.report import read_metrics_jsonl
+    method, for the lowest seed (see :func:`kc_splatfacto.analysis.diagnostics.plot_kurtosis_gap_comparison`)."""
+    from kc_splatfacto.analysis.diagnostics import plot_kurtosis_gap_comparison
+    from kc_splatfacto.engine.metrics_log import read_metrics
 
     paths = {}
     for scene in dict.fromkeys(r["scene"] for r in runs):
         seed = min(r["seed"] for r in runs if r["scene"] == scene)
         records = {
-            r["method"]: read_metrics_jsonl(Path(r["run_dir"]) / "metrics.jsonl")
+            r["method"]: read_metrics(Path(r["run_dir"]) / "metrics.jsonl")
             for r in runs
             if r["scene"] == scene and r["seed"] == seed
         }

@@ -17,14 +17,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
 
 from kc_splatfacto.atomic import atomic_write_text
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 SSIM_CONVENTION = (
     "SSIM (not D-SSIM): kornia.metrics.ssim, gaussian window 11x11 sigma 1.5, C1=0.01^2, C2=0.03^2, reflect padding, "

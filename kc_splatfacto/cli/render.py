@@ -11,11 +11,9 @@ Writes:
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 #: OpenCV FourCC of the mp4 writer; 'mp4v' (MPEG-4 part 2) ships with every opencv-python wheel.
 MP4_FOURCC = "mp4v"
@@ -91,7 +89,7 @@ def write_video(frames_bgr, path: Path, fps: float) -> int:
 def render_path_video(model, keyframes, path: Path, num_frames: int, fps: float, loop: bool = False) -> int:
     """Render ``num_frames`` cameras interpolated through ``keyframes`` into an mp4; returns the frames checked."""
     from kc_splatfacto.cli.eval import render_view
-    from kc_splatfacto.engine.camera_path import interpolate_camera_path
+    from kc_splatfacto.analysis.camera_path import interpolate_camera_path
 
     cameras = interpolate_camera_path(keyframes, num_frames, loop=loop)
     return write_video((to_uint8_bgr(render_view(model, cameras, i)[0]) for i in range(len(cameras))), path, fps)
@@ -100,8 +98,8 @@ def render_path_video(model, keyframes, path: Path, num_frames: int, fps: float,
 def write_diagnostics(loaded, out_dir: Path, views: list[int]) -> list[Path]:
     """Wavelet diagnostics PNGs for the given test views, and the kurtosis history when the log has it."""
     from kc_splatfacto.cli.eval import render_view
-    from kc_splatfacto.engine.diagnostics import plot_kurtosis_history, save_view_diagnostics
-    from kc_splatfacto.engine.report import read_metrics_jsonl
+    from kc_splatfacto.analysis.diagnostics import plot_kurtosis_history, save_view_diagnostics
+    from kc_splatfacto.engine.metrics_log import read_metrics
     from kc_splatfacto.model.splatfacto import composite_with_background
 
     paths = []
@@ -117,7 +115,7 @@ def write_diagnostics(loaded, out_dir: Path, views: list[int]) -> list[Path]:
         )
     log = Path(loaded.run_dir) / "metrics.jsonl"
     if log.is_file():
-        records = read_metrics_jsonl(log)
+        records = read_metrics(log)
         if any(r.get("kurtosis_render") is not None for r in records):
             paths.append(plot_kurtosis_history(records, out_dir / "kurtosis_history.png", title=str(loaded.run_dir)))
         else:

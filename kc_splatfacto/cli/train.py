@@ -17,13 +17,9 @@ The dataparser is a subcommand after the method's options (``auto``, the default
 from __future__ import annotations
 
 import copy
-import os
 import sys
 from typing import Any
 
-# Before torch loads (it is imported lazily below): OpenMP's default spin-waiting threads fight the rasterizer's
-# numba threads and make a step ~20x slower on small machines.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from kc_splatfacto.registry import discover_methods
 
@@ -65,10 +61,10 @@ def entrypoint(argv: list[str] | None = None) -> int:
         argv = ["--help"]
     config = parse_config(argv)
 
-    from kc_splatfacto.engine.trainer import Trainer, TrainingDivergedError
+    from kc_splatfacto.engine.trainer import TrainingDivergedError
     from kc_splatfacto.model.strategy import NoGaussiansLeftError
 
-    trainer = Trainer(config)
+    trainer = config.setup()
     try:
         run_dir = trainer.train()
     except (TrainingDivergedError, NoGaussiansLeftError) as exc:

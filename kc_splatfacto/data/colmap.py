@@ -41,7 +41,6 @@ from kc_splatfacto.data.base import (
 from kc_splatfacto.data.images import derived_root, downscaled_paths, image_size, read_image, write_image_atomic
 from kc_splatfacto.data.outputs import DataparserOutputs
 
-MODEL_FILES = ("cameras", "images", "points3D")
 # COLMAP model folders tried in order when none is configured (nerfstudio's default is colmap/sparse/0).
 DEFAULT_MODEL_DIRS = ("sparse/0", "colmap/sparse/0", "sparse")
 # Distortion of the supported models is kept in OpenCV's (k1, k2, p1, p2, k3) order.

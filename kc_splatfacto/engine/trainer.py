@@ -33,7 +33,7 @@ import torch
 
 from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, find_checkpoint, load_checkpoint, save_checkpoint
 from kc_splatfacto.engine.config import LoggingConfig, MachineConfig, save_config
-from kc_splatfacto.engine.logging import MetricsWriter, ProgressBar
+from kc_splatfacto.engine.metrics_log import MetricsWriter, ProgressBar
 from kc_splatfacto.engine.optimizers import OptimizersConfig
 from kc_splatfacto.engine.pipeline import Pipeline, PipelineConfig
 

@@ -22,7 +22,6 @@ MIN_INITIAL_SCALE = 1e-7
 """floor of the initial scale (relative to the scene scale): duplicated seed points are at distance 0"""
 LONE_POINT_SCALE = 0.01
 """initial scale (relative to the scene scale) of a Gaussian with no neighbour at all (a single seed point)"""
-PARAM_NAMES = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
 
 
 def num_sh_bases(degree: int) -> int:
@@ -33,10 +32,6 @@ def num_sh_bases(degree: int) -> int:
 def rgb_to_sh(rgb: torch.Tensor) -> torch.Tensor:
     """Degree-0 SH coefficient whose colour (``sh * C0 + 0.5``) is ``rgb`` (any shape, values in [0, 1])."""
     return (rgb - 0.5) / SH_C0
-
-
-def sh_to_rgb(sh: torch.Tensor) -> torch.Tensor:
-    return sh * SH_C0 + 0.5
 
 
 def random_quat_tensor(n: int, generator: torch.Generator | None = None) -> torch.Tensor:

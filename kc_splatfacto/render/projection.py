@@ -53,12 +53,6 @@ def quat_scale_to_covar_half(quats: Tensor, scales: Tensor) -> Tensor:
     return quat_to_rotmat(quats) * scales[..., None, :]
 
 
-def quat_scale_to_covar(quats: Tensor, scales: Tensor) -> Tensor:
-    """World-space covariances ``R S S^T R^T``. [N, 4], [N, 3] -> [N, 3, 3]."""
-    half = quat_scale_to_covar_half(quats, scales)
-    return half @ half.transpose(-1, -2)
-
-
 def world_to_cam(means: Tensor, covar_halves: Tensor, viewmats: Tensor) -> tuple[Tensor, Tensor]:
     """Means and covariance factors in camera space: ``mu_c = W mu + t``, ``M_c = W M`` (``Sigma_c = M_c M_c^T``).
 

@@ -23,7 +23,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from kc_splatfacto.engine.figures import pyplot, save_figure
+from kc_splatfacto.analysis.figures import pyplot, save_figure
 
 #: Metrics reported, with the direction that is better.
 METRICS = {"psnr": "higher", "ssim": "higher", "lpips": "lower"}
@@ -31,23 +31,6 @@ METRIC_LABELS = {"psnr": "PSNR (dB)", "ssim": "SSIM", "lpips": "LPIPS"}
 #: Columns of the flat evaluation table, in order.
 EVAL_COLUMNS = ("scene", "method", "seed", "step", "elapsed_s", "train_s", "psnr", "ssim", "lpips", "num_images", "run_dir")
 DEFAULT_TIME_KEY = "train_s"
-
-
-def read_metrics_jsonl(path: str | Path) -> list[dict]:
-    """Every record of a run's ``metrics.jsonl`` (one JSON object a line; blank lines ignored)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"metrics log {path} does not exist (a run folder holds metrics.jsonl once it trained)")
-    records = []
-    with path.open() as handle:
-        for number, line in enumerate(handle, 1):
-            if not line.strip():
-                continue
-            try:
-                records.append(json.loads(line))
-            except json.JSONDecodeError as exc:
-                raise ValueError(f"{path}:{number}: not a JSON object ({exc}); the log may be truncated") from exc
-    return records
 
 
 def _number(value) -> float | None:

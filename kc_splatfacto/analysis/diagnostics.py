@@ -17,7 +17,7 @@ from typing import Iterable
 import numpy as np
 import torch
 
-from kc_splatfacto.engine.figures import pyplot, save_figure
+from kc_splatfacto.analysis.figures import pyplot, save_figure
 
 #: Orientation names of (cH, cV, cD), the paper's naming.
 ORIENTATIONS = ("LH", "HL", "HH")

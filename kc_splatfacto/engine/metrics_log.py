@@ -47,10 +47,21 @@ class MetricsWriter:
         self._file.close()
 
 
-def read_metrics(path: Path) -> list[dict[str, Any]]:
-    """All records of a ``metrics.jsonl``."""
-    lines = Path(path).read_text().splitlines()
-    return [json.loads(line) for line in lines if line.strip()]
+def read_metrics(path: str | Path) -> list[dict[str, Any]]:
+    """Every record of a run's ``metrics.jsonl`` (one JSON object a line; blank lines ignored)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"metrics log {path} does not exist (a run folder holds metrics.jsonl once it trained)")
+    records = []
+    with path.open() as handle:
+        for number, line in enumerate(handle, 1):
+            if not line.strip():
+                continue
+            try:
+                records.append(json.loads(line))
+            except json.JSONDecodeError as exc:
+                raise ValueError(f"{path}:{number}: not a JSON object ({exc}); the log may be truncated") from exc
+    return records
 
 
 class ProgressBar:
