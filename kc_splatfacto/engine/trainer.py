@@ -116,6 +116,9 @@ class Trainer:
     """Trains ``config.pipeline.model`` on ``config.pipeline.datamanager``'s scene."""
 
     def __init__(self, config: TrainerConfig):
+        # the trainer fills in what it resolves (the --data alias, the timestamp) on its own copy: the caller's
+        # config stays as given, and config.yml records the resolved one
+        config = copy.deepcopy(config)
         config.resolve_aliases()
         self.config = config
         self.device = config.machine.resolve_device()
