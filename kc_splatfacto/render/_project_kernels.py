@@ -351,6 +351,9 @@ def project_sh_bwd(means, quats, scales, opacities, shs, viewmats, Ks, campos, p
         gm00 = gm01 = gm02 = gm10 = gm11 = gm12 = gm20 = gm21 = gm22 = 0.0
         g_op = 0.0
         for c in range(n_cams):
+            if not antialiased:
+                # classic mode: opacities_c is the opacity itself for every pair, culled or not
+                g_op += v_opacities_c[c, n]
             if not (radii[c, n, 0] > 0 or radii[c, n, 1] > 0):
                 continue
             w00, w01, w02 = viewmats[c, 0, 0], viewmats[c, 0, 1], viewmats[c, 0, 2]
@@ -409,8 +412,6 @@ def project_sh_bwd(means, quats, scales, opacities, shs, viewmats, Ks, campos, p
                     v_a += v_det_orig * cov_c + v_det_c * cc
                     v_c += v_det_orig * cov_a + v_det_c * a
                     v_b += -2.0 * cov_b * (v_det_orig + v_det_c)
-            else:
-                g_op += v_op_c
             # --- conic = (cc, -b, a) / det
             p = cc / det
             q = -cov_b / det
