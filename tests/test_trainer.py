@@ -160,6 +160,31 @@ def test_non_finite_parameters_remove_their_gaussians(tmp_path):
     assert all(torch.isfinite(p).all() for p in trainer.model.gauss_params.values())
 
 
+def test_non_finite_parameters_that_render_finitely_are_removed_by_the_periodic_scan(tmp_path, monkeypatch):
+    # an infinite opacity logit renders as opacity 1 with a zero gradient: the rasterizer never sees a NaN/inf
+    import kc_splatfacto.engine.trainer as trainer_module
+
+    monkeypatch.setattr(trainer_module, "PARAMETER_SCAN_EVERY", 5)
+    config = tiny_demo_config("splatfacto", tmp_path, iterations=12)
+    trainer = Trainer(config)
+    trainer.setup()
+    original = trainer.train_iteration
+
+    def corrupt(step):
+        if step == 2:
+            with torch.no_grad():
+                trainer.optimizers["opacities"].param_groups[0]["params"][0][:2] = float("inf")
+        return original(step)
+
+    trainer.train_iteration = corrupt
+    n0 = trainer.model.num_points
+    trainer.train()
+    records = read_metrics(trainer.run_dir / "metrics.jsonl")
+    removals = [r for r in records if r["kind"] == "bad_step" and "2 Gaussians removed" in r["reason"]]
+    assert [r["step"] for r in removals] == [6]  # found by the scan of step 5 (0-based), reported as step 6
+    assert trainer.model.num_points == n0 - 2
+
+
 def test_papers_failing_weights_train_without_nan(tmp_path):
     # supplementary table: KC 1e-3, CBC 1.0 and wavelet 1.0 degrade the metrics but must stay finite
     config = tiny_demo_config("kc-splatfacto", tmp_path, iterations=60, kc_weight=1e-3, cbc_weight=1.0,

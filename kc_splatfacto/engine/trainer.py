@@ -5,8 +5,9 @@ Step convention: ``step`` in checkpoints and ``metrics.jsonl`` is the number of 
 iteration ``model.step`` is the 0-based index of the step being taken, which every schedule reads.
 
 Stiff cases: a non-finite render, loss or gradient skips the step (no update, no density-control statistics; the
-learning-rate schedule still advances so the run keeps its length); Gaussians whose parameters are non-finite at the
-start of a step are removed (with their optimizer state) and that step is skipped. Each is a ``bad_step`` record. After ``max_consecutive_bad_steps`` in a row the state (still the last good
+learning-rate schedule still advances so the run keeps its length); Gaussians whose parameters are non-finite are
+removed (with their optimizer state) and that step is skipped: found by the rasterizer while it reads them, and by a
+full scan every ``PARAMETER_SCAN_EVERY`` steps for values that render finitely. Each is a ``bad_step`` record. After ``max_consecutive_bad_steps`` in a row the state (still the last good
 one, since bad updates were never applied) is saved and :class:`TrainingDivergedError` raised. Ctrl-C (SIGINT) ends
 the current step, saves a checkpoint and returns cleanly.
 
@@ -34,9 +35,12 @@ from kc_splatfacto.engine.evaluation import evaluate_split
 from kc_splatfacto.engine.logging import MetricsWriter, ProgressBar
 from kc_splatfacto.model import ops
 from kc_splatfacto.model.strategy import NoGaussiansLeftError
+from kc_splatfacto.render.errors import NonFiniteInputError
 
 GRAD_OVERFLOW = 1e18
 """a gradient this large would overflow Adam's squared-gradient average in float32 (1e36 < 3.4e38 just fits)"""
+PARAMETER_SCAN_EVERY = 100
+"""steps between full scans of the parameters for NaN/inf (the rasterizer reports what it reads every step)"""
 PHASES = ("render", "losses", "backward", "optimizer", "density_control")
 
 # a skipped (non-finite) step still advances the schedules, which torch reports as a misuse; it is deliberate here
@@ -238,6 +242,25 @@ class Trainer:
             raise NoGaussiansLeftError("every Gaussian had non-finite parameters and was removed: nothing left to train")
         return int(bad_rows.sum())
 
+    def _render_or_remove_non_finite(self, camera, step: int) -> tuple[dict[str, Any] | None, int]:
+        """Render, or remove the Gaussians with non-finite parameters: (outputs, 0) or (None, count removed).
+
+        The rasterizer finds NaN/inf in what it reads (``NonFiniteInputError``) at no extra cost; values that render
+        finitely (an infinite opacity logit, a scale logit of -inf) are caught by a full scan every
+        ``PARAMETER_SCAN_EVERY`` steps instead of every step.
+        """
+        if step % PARAMETER_SCAN_EVERY == 0:
+            removed = self._remove_non_finite_gaussians()
+            if removed:
+                return None, removed
+        try:
+            return self.model.get_outputs(camera), 0
+        except NonFiniteInputError:
+            removed = self._remove_non_finite_gaussians()
+            if not removed:  # a non-finite camera, not a parameter: a real error
+                raise
+            return None, removed
+
     def train_iteration(self, step: int) -> dict[str, Any]:
         """Take optimization step ``step`` (0-based). Returns the loss dict as floats (empty for a skipped step)."""
         model = self.model
@@ -246,14 +269,10 @@ class Trainer:
         bad = None
         loss_dict: dict[str, torch.Tensor] = {}
         t = time.perf_counter()
-        removed = self._remove_non_finite_gaussians()
-        t = self._tick("optimizer", t)
+        outputs, removed = self._render_or_remove_non_finite(camera, step)
+        t = self._tick("render", t)
         if removed:
             bad = f"non-finite parameters: {removed} Gaussians removed"
-            outputs = None
-        else:
-            outputs = model.get_outputs(camera)
-            t = self._tick("render", t)
         if bad is not None:
             pass
         elif not bool(torch.isfinite(outputs["rgb"]).all()):

@@ -46,81 +46,88 @@ def _quat_to_rotmat(w, x, y, z):
 
 
 @njit(inline="always", cache=True)
-def _sh_basis(k, x, y, z, sh_c):
-    """Basis function k (0..15) at the unit direction (x, y, z), gsplat's order and signs."""
-    if k == 0:
-        return sh_c[0]
-    if k == 1:
-        return -sh_c[1] * y
-    if k == 2:
-        return sh_c[1] * z
-    if k == 3:
-        return -sh_c[1] * x
-    if k == 4:
-        return sh_c[5] * 2.0 * x * y
-    if k == 5:
-        return -sh_c[2] * z * y
-    if k == 6:
-        return sh_c[3] * z * z - sh_c[4]
-    if k == 7:
-        return -sh_c[2] * z * x
-    if k == 8:
-        return sh_c[5] * (x * x - y * y)
+def _sh_bases_all(x, y, z, sh_c):
+    """All 16 basis functions at (x, y, z) as a tuple (unrolled: no per-basis branches in the pixel-free loops)."""
     fc1 = x * x - y * y
     fs1 = 2.0 * x * y
     tmp_c = -sh_c[8] * z * z + sh_c[9]
-    if k == 9:
-        return -sh_c[6] * (x * fs1 + y * fc1)
-    if k == 10:
-        return sh_c[7] * z * fs1
-    if k == 11:
-        return tmp_c * y
-    if k == 12:
-        return z * (sh_c[10] * z * z - sh_c[11])
-    if k == 13:
-        return tmp_c * x
-    if k == 14:
-        return sh_c[7] * z * fc1
-    return -sh_c[6] * (x * fc1 - y * fs1)
+    return (sh_c[0], -sh_c[1] * y, sh_c[1] * z, -sh_c[1] * x,
+            sh_c[5] * fs1, -sh_c[2] * z * y, sh_c[3] * z * z - sh_c[4], -sh_c[2] * z * x, sh_c[5] * fc1,
+            -sh_c[6] * (x * fs1 + y * fc1), sh_c[7] * z * fs1, tmp_c * y, z * (sh_c[10] * z * z - sh_c[11]),
+            tmp_c * x, sh_c[7] * z * fc1, -sh_c[6] * (x * fc1 - y * fs1))
 
 
 @njit(inline="always", cache=True)
-def _sh_basis_grad(k, x, y, z, sh_c):
-    """(d/dx, d/dy, d/dz) of basis function k at (x, y, z), the components treated as independent."""
-    if k == 0:
-        return 0.0, 0.0, 0.0
-    if k == 1:
-        return 0.0, -sh_c[1], 0.0
-    if k == 2:
-        return 0.0, 0.0, sh_c[1]
-    if k == 3:
-        return -sh_c[1], 0.0, 0.0
-    if k == 4:
-        return 2.0 * sh_c[5] * y, 2.0 * sh_c[5] * x, 0.0
-    if k == 5:
-        return 0.0, -sh_c[2] * z, -sh_c[2] * y
-    if k == 6:
-        return 0.0, 0.0, 2.0 * sh_c[3] * z
-    if k == 7:
-        return -sh_c[2] * z, 0.0, -sh_c[2] * x
-    if k == 8:
-        return 2.0 * sh_c[5] * x, -2.0 * sh_c[5] * y, 0.0
-    fc1 = x * x - y * y
-    fs1 = 2.0 * x * y
-    tmp_c = -sh_c[8] * z * z + sh_c[9]
-    if k == 9:
-        return -3.0 * sh_c[6] * fs1, -3.0 * sh_c[6] * fc1, 0.0
-    if k == 10:
-        return 2.0 * sh_c[7] * z * y, 2.0 * sh_c[7] * z * x, sh_c[7] * fs1
-    if k == 11:
-        return 0.0, tmp_c, -2.0 * sh_c[8] * z * y
-    if k == 12:
-        return 0.0, 0.0, 3.0 * sh_c[10] * z * z - sh_c[11]
-    if k == 13:
-        return tmp_c, 0.0, -2.0 * sh_c[8] * z * x
-    if k == 14:
-        return 2.0 * sh_c[7] * z * x, -2.0 * sh_c[7] * z * y, sh_c[7] * fc1
-    return -3.0 * sh_c[6] * fc1, 3.0 * sh_c[6] * fs1, 0.0
+def _sh_dot(shs, cs, n, ch, n_bases, b):
+    """sum_k b[k] shs[cs, n, k, ch] over the first n_bases (1, 4, 9 or 16) coefficients."""
+    v = b[0] * shs[cs, n, 0, ch]
+    if n_bases > 1:
+        v += b[1] * shs[cs, n, 1, ch] + b[2] * shs[cs, n, 2, ch] + b[3] * shs[cs, n, 3, ch]
+    if n_bases > 4:
+        v += (b[4] * shs[cs, n, 4, ch] + b[5] * shs[cs, n, 5, ch] + b[6] * shs[cs, n, 6, ch]
+              + b[7] * shs[cs, n, 7, ch] + b[8] * shs[cs, n, 8, ch])
+    if n_bases > 9:
+        v += (b[9] * shs[cs, n, 9, ch] + b[10] * shs[cs, n, 10, ch] + b[11] * shs[cs, n, 11, ch]
+              + b[12] * shs[cs, n, 12, ch] + b[13] * shs[cs, n, 13, ch] + b[14] * shs[cs, n, 14, ch]
+              + b[15] * shs[cs, n, 15, ch])
+    return v
+
+
+@njit(inline="always", cache=True)
+def _sh_scatter(v_shs, cs, n, ch, n_bases, b, v):
+    """v_shs[cs, n, k, ch] += b[k] v for the first n_bases coefficients."""
+    v_shs[cs, n, 0, ch] += b[0] * v
+    if n_bases > 1:
+        v_shs[cs, n, 1, ch] += b[1] * v
+        v_shs[cs, n, 2, ch] += b[2] * v
+        v_shs[cs, n, 3, ch] += b[3] * v
+    if n_bases > 4:
+        v_shs[cs, n, 4, ch] += b[4] * v
+        v_shs[cs, n, 5, ch] += b[5] * v
+        v_shs[cs, n, 6, ch] += b[6] * v
+        v_shs[cs, n, 7, ch] += b[7] * v
+        v_shs[cs, n, 8, ch] += b[8] * v
+    if n_bases > 9:
+        v_shs[cs, n, 9, ch] += b[9] * v
+        v_shs[cs, n, 10, ch] += b[10] * v
+        v_shs[cs, n, 11, ch] += b[11] * v
+        v_shs[cs, n, 12, ch] += b[12] * v
+        v_shs[cs, n, 13, ch] += b[13] * v
+        v_shs[cs, n, 14, ch] += b[14] * v
+        v_shs[cs, n, 15, ch] += b[15] * v
+
+
+@njit(inline="always", cache=True)
+def _sh_dir_vjp(shs, cs, n, n_bases, x, y, z, v_r, v_g, v_b, sh_c):
+    """Gradient of sum_k,ch v_ch basis_k(x, y, z) shs[cs, n, k, ch] w.r.t. the (unnormalized) components x, y, z."""
+
+    def vb(k):
+        return v_r * shs[cs, n, k, 0] + v_g * shs[cs, n, k, 1] + v_b * shs[cs, n, k, 2]
+
+    v_x = 0.0
+    v_y = 0.0
+    v_z = 0.0
+    if n_bases > 1:
+        v_y -= sh_c[1] * vb(1)
+        v_z += sh_c[1] * vb(2)
+        v_x -= sh_c[1] * vb(3)
+    if n_bases > 4:
+        vb4, vb5, vb6, vb7, vb8 = vb(4), vb(5), vb(6), vb(7), vb(8)
+        v_x += 2.0 * sh_c[5] * y * vb4 - sh_c[2] * z * vb7 + 2.0 * sh_c[5] * x * vb8
+        v_y += 2.0 * sh_c[5] * x * vb4 - sh_c[2] * z * vb5 - 2.0 * sh_c[5] * y * vb8
+        v_z += -sh_c[2] * y * vb5 + 2.0 * sh_c[3] * z * vb6 - sh_c[2] * x * vb7
+    if n_bases > 9:
+        fc1 = x * x - y * y
+        fs1 = 2.0 * x * y
+        tmp_c = -sh_c[8] * z * z + sh_c[9]
+        vb9, vb10, vb11, vb12, vb13, vb14, vb15 = vb(9), vb(10), vb(11), vb(12), vb(13), vb(14), vb(15)
+        v_x += (-3.0 * sh_c[6] * fs1 * vb9 + 2.0 * sh_c[7] * z * y * vb10 + tmp_c * vb13
+                + 2.0 * sh_c[7] * z * x * vb14 - 3.0 * sh_c[6] * fc1 * vb15)
+        v_y += (-3.0 * sh_c[6] * fc1 * vb9 + 2.0 * sh_c[7] * z * x * vb10 + tmp_c * vb11
+                - 2.0 * sh_c[7] * z * y * vb14 + 3.0 * sh_c[6] * fs1 * vb15)
+        v_z += (sh_c[7] * fs1 * vb10 - 2.0 * sh_c[8] * z * y * vb11 + (3.0 * sh_c[10] * z * z - sh_c[11]) * vb12
+                - 2.0 * sh_c[8] * z * x * vb13 + sh_c[7] * fc1 * vb14)
+    return v_x, v_y, v_z
 
 
 @njit(inline="always", cache=True)
@@ -191,11 +198,14 @@ def project_sh_fwd(means, quats, scales, opacities, shs, viewmats, Ks, campos, p
         if not math.isfinite(opacity):
             flags |= BAD_OPACITIES
         if sh_degree >= 0:
+            # x - x is 0 for finite x and NaN for NaN/inf: one branch for all coefficients
+            total = 0.0
             for cs in range(n_sh_cams):
                 for k in range(n_coeffs):
                     for ch in range(3):
-                        if not math.isfinite(shs[cs, n, k, ch]):
-                            flags |= BAD_COLORS
+                        total += shs[cs, n, k, ch] - shs[cs, n, k, ch]
+            if total != 0.0:
+                flags |= BAD_COLORS
         bad[n] = flags
         inv_norm = 1.0 / max(math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz), NORM_EPS)
         r00, r01, r02, r10, r11, r12, r20, r21, r22 = _quat_to_rotmat(qw * inv_norm, qx * inv_norm, qy * inv_norm,
@@ -295,14 +305,10 @@ def project_sh_fwd(means, quats, scales, opacities, shs, viewmats, Ks, campos, p
                 dx *= inv_d
                 dy *= inv_d
                 dz *= inv_d
-                r = 0.0
-                g = 0.0
-                bl = 0.0
-                for k in range(n_bases):
-                    basis = _sh_basis(k, dx, dy, dz, sh_c)
-                    r += basis * shs[cs, n, k, 0]
-                    g += basis * shs[cs, n, k, 1]
-                    bl += basis * shs[cs, n, k, 2]
+                bases = _sh_bases_all(dx, dy, dz, sh_c)
+                r = _sh_dot(shs, cs, n, 0, n_bases, bases)
+                g = _sh_dot(shs, cs, n, 1, n_bases, bases)
+                bl = _sh_dot(shs, cs, n, 2, n_bases, bases)
                 colors[c, n, 0] = max(r + offset, 0.0)
                 colors[c, n, 1] = max(g + offset, 0.0)
                 colors[c, n, 2] = max(bl + offset, 0.0)
@@ -314,10 +320,11 @@ def project_sh_bwd(means, quats, scales, opacities, shs, viewmats, Ks, campos, p
                    v_means, v_quats, v_scales, v_opacities, v_shs, v_viewmats_parts, v_campos_parts):
     """Backward of :func:`project_sh_fwd` for the pairs it kept (radii > 0); culled pairs get no gradient.
 
-    Upstream gradients: v_means2d [C,N,2], v_depths [C,N], v_conics [C,N,3], v_opacities_c [C,N], v_colors [C,N,3]
-    (float64). Outputs (float64, zero-initialised by the caller): v_means [N,3], v_quats [N,4], v_scales [N,3],
+    Upstream gradients: v_means2d [C,N,2], v_depths [C,N], v_conics [C,N,3], v_opacities_c [C,N], v_colors [C,N,3].
+    Outputs (any float dtype, every entry written here): v_means [N,3], v_quats [N,4], v_scales [N,3],
     v_opacities [N], v_shs [Cs,N,K,3]; with ``want_camera_grads`` the per-pair contributions v_viewmats_parts
-    [C,N,12] (W row-major, then t) and v_campos_parts [C,N,3], summed over N by the caller.
+    [C,N,12] (W row-major, then t) and v_campos_parts [C,N,3] (zero-initialised by the caller, culled pairs are
+    skipped), summed over N by the caller.
     """
     n_cams = viewmats.shape[0]
     n_gauss = means.shape[0]
@@ -337,6 +344,10 @@ def project_sh_bwd(means, quats, scales, opacities, shs, viewmats, Ks, campos, p
         sy = np.float64(scales[n, 1])
         sz = np.float64(scales[n, 2])
         opacity = np.float64(opacities[n])
+        for cs in range(n_sh_cams):  # v_shs comes uninitialised: each Gaussian's rows are zeroed by its thread
+            for k in range(shs.shape[2]):
+                for ch in range(3):
+                    v_shs[cs, n, k, ch] = 0.0
         q_norm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
         inv_norm = 1.0 / max(q_norm, NORM_EPS)
         nw, nx, ny, nz = qw * inv_norm, qx * inv_norm, qy * inv_norm, qz * inv_norm
@@ -504,31 +515,18 @@ def project_sh_bwd(means, quats, scales, opacities, shs, viewmats, Ks, campos, p
                 ex = dx * inv_d
                 ey = dy * inv_d
                 ez = dz * inv_d
-                sum_r = 0.0
-                sum_g = 0.0
-                sum_b = 0.0
-                for k in range(n_bases):
-                    basis = _sh_basis(k, ex, ey, ez, sh_c)
-                    sum_r += basis * shs[cs, n, k, 0]
-                    sum_g += basis * shs[cs, n, k, 1]
-                    sum_b += basis * shs[cs, n, k, 2]
+                bases = _sh_bases_all(ex, ey, ez, sh_c)
+                sum_r = _sh_dot(shs, cs, n, 0, n_bases, bases)
+                sum_g = _sh_dot(shs, cs, n, 1, n_bases, bases)
+                sum_b = _sh_dot(shs, cs, n, 2, n_bases, bases)
                 # clamp_min(colour + offset, 0) passes the gradient where the input is >= 0
                 v_r = v_colors[c, n, 0] if sum_r + offset >= 0.0 else 0.0
                 v_g = v_colors[c, n, 1] if sum_g + offset >= 0.0 else 0.0
                 v_bl = v_colors[c, n, 2] if sum_b + offset >= 0.0 else 0.0
-                v_ex = 0.0
-                v_ey = 0.0
-                v_ez = 0.0
-                for k in range(n_bases):
-                    basis = _sh_basis(k, ex, ey, ez, sh_c)
-                    v_shs[cs, n, k, 0] += basis * v_r
-                    v_shs[cs, n, k, 1] += basis * v_g
-                    v_shs[cs, n, k, 2] += basis * v_bl
-                    v_basis = v_r * shs[cs, n, k, 0] + v_g * shs[cs, n, k, 1] + v_bl * shs[cs, n, k, 2]
-                    gx, gy, gz = _sh_basis_grad(k, ex, ey, ez, sh_c)
-                    v_ex += v_basis * gx
-                    v_ey += v_basis * gy
-                    v_ez += v_basis * gz
+                _sh_scatter(v_shs, cs, n, 0, n_bases, bases, v_r)
+                _sh_scatter(v_shs, cs, n, 1, n_bases, bases, v_g)
+                _sh_scatter(v_shs, cs, n, 2, n_bases, bases, v_bl)
+                v_ex, v_ey, v_ez = _sh_dir_vjp(shs, cs, n, n_bases, ex, ey, ez, v_r, v_g, v_bl, sh_c)
                 # normalization dir / max(|dir|, eps)
                 if d_norm > NORM_EPS:
                     dot = ex * v_ex + ey * v_ey + ez * v_ez

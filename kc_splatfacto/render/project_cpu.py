@@ -136,7 +136,7 @@ class _ProjectAndShade(torch.autograd.Function):
         v_quats = np.empty((n_gauss, 4), np_dtype)
         v_scales = np.empty((n_gauss, 3), np_dtype)
         v_opac = np.empty(n_gauss, np_dtype)
-        v_shs = np.zeros(sh_np.shape, np_dtype)
+        v_shs = np.empty(sh_np.shape, np_dtype)
         parts_shape = (n_cams, n_gauss) if want_camera else (0, 0)
         v_view_parts = np.zeros(parts_shape + (12,), np.float64)
         v_campos_parts = np.zeros(parts_shape + (3,), np.float64)

@@ -19,7 +19,7 @@ from .errors import NonFiniteInputError, non_finite_message
 from .projection import fully_fused_projection
 from .rasterize_torch import rasterize_to_pixels_torch
 from .sh import sh_to_rgb
-from .tiles import isect_offset_encode, isect_tiles, tile_grid
+from .tiles import bin_tiles_cpu, isect_offset_encode, isect_tiles, tile_grid
 
 RenderMode = Literal["RGB", "D", "ED", "RGB+D", "RGB+ED"]
 RasterizeMode = Literal["classic", "antialiased"]
@@ -286,8 +286,13 @@ def rasterization(
         )
 
     tile_width, tile_height = tile_grid(width, height, tile_size)
-    tiles_per_gauss, isect_ids, flatten_ids = isect_tiles(means2d, radii, depths, tile_size, tile_width, tile_height)
-    isect_offsets = isect_offset_encode(isect_ids, n_cameras, tile_width, tile_height)
+    if fused:
+        tiles_per_gauss, isect_ids, flatten_ids, isect_offsets = bin_tiles_cpu(
+            means2d, radii, depths, tile_size, tile_width, tile_height)
+    else:
+        tiles_per_gauss, isect_ids, flatten_ids = isect_tiles(means2d, radii, depths, tile_size, tile_width,
+                                                              tile_height)
+        isect_offsets = isect_offset_encode(isect_ids, n_cameras, tile_width, tile_height)
 
     rasterize = rasterize_to_pixels_torch if resolved == "torch" else _cpu_rasterizer()
     render_colors, render_alphas = rasterize(
