@@ -47,6 +47,14 @@ PHASES = ("render", "losses", "backward", "optimizer", "density_control")
 warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step\\(\\)` before `optimizer.step\\(\\)`")
 
 
+def _max_abs(tensor: torch.Tensor) -> torch.Tensor:
+    """max |x| (NaN if any x is NaN) in one read of the tensor: aminmax, not an |x| copy then a max."""
+    if tensor.numel() == 0:
+        return tensor.new_zeros(())
+    low, high = torch.aminmax(tensor)
+    return torch.maximum(-low, high)
+
+
 class TrainingDivergedError(RuntimeError):
     """Too many consecutive non-finite steps."""
 
@@ -223,7 +231,7 @@ class Trainer:
         params = [(k, p) for k, p in self.model.gauss_params.items() if p.grad is not None]
         if not params:
             return None
-        peaks = torch.stack([p.grad.abs().amax() if p.grad.numel() else p.grad.new_zeros(()) for _, p in params])
+        peaks = torch.stack([_max_abs(p.grad) for _, p in params])
         if bool(torch.isfinite(peaks).all()) and float(peaks.max()) < GRAD_OVERFLOW:
             return None
         bad = [k for (k, _), v in zip(params, peaks.tolist()) if not (math.isfinite(v) and v < GRAD_OVERFLOW)]

@@ -15,6 +15,11 @@ Layout shared by the kernels (all arrays C-contiguous numpy):
   intersection (each intersection belongs to exactly one tile, so no write races), reduced to Gaussians by
   ``reduce_isect_grads`` in a fixed serial order (deterministic).
 
+Kernel families: the 4x4-block kernels (``*_blocks``, 16 px tiles: ``constants.BLOCK_TILE_SIZE``) and the scalar
+kernels (any other tile size). Both evaluate a Gaussian at a pixel through ``_gaussian_sigma`` and ``_alpha_at``
+(the branch-free float32 ``exp_neg``), so they keep and skip the same (pixel, Gaussian) pairs; their colours differ
+only by float32 (blocks) vs float64 (scalar forward) accumulation, up to about 2.4e-7.
+
 The gsplat constants (alpha clamp, alpha threshold, transmittance threshold) are kernel ARGUMENTS, not globals:
 numba freezes globals into its on-disk cache, and a cache keyed on this file alone would not see a change in
 ``constants.py``.
