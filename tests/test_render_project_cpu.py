@@ -154,8 +154,19 @@ def test_non_finite_input_is_found_in_the_kernel(field, index):
     from kc_splatfacto.render import NonFiniteInputError
 
     inputs = scene(n=50, dtype=torch.float32)
+    kept = int(torch.nonzero((fast(*inputs, 3, False)[0] > 0).all(-1).any(0))[-1])
     inputs[index] = inputs[index].clone()
-    inputs[index].view(-1)[-1] = math.inf
+    # SH coefficients are checked where they are read (active degrees of kept pairs): poison a kept Gaussian's
+    # last degree-3 coefficient; the other inputs are checked for every Gaussian
+    inputs[index][kept].view(-1)[-1] = math.inf
     name = "colors" if field == "shs" else field
     with pytest.raises(NonFiniteInputError, match=f"{name} holds 1 NaN/inf"):
         fast(*inputs, 3, False)
+
+
+def test_non_finite_sh_coefficient_of_an_inactive_degree_is_not_read():
+    inputs = scene(n=50, dtype=torch.float32)
+    inputs[4] = inputs[4].clone()
+    inputs[4][:, 4:] = math.nan  # degrees 2 and 3, unused at degree 1
+    out = fast(*inputs, 1, False)
+    assert all(torch.isfinite(t).all() for t in out)

@@ -159,12 +159,12 @@ def project_sh_fwd(means, quats, scales, opacities, shs, viewmats, Ks, campos, p
     [N_SH_CONSTS]. Outputs (written for every pair; culled pairs get radii 0 and zeros, colour ``max(offset, 0)``,
     opacity ``opacity`` in classic mode and 0 in antialiased mode, as the reference): radii [C,N,2] int32,
     means2d [C,N,2], depths [C,N], conics [C,N,3], compensations [C,N], opacities_c [C,N], colors [C,N,3] (when
-    ``sh_degree >= 0``), bad [N] uint8 (BAD_* bits of the inputs holding NaN/inf).
+    ``sh_degree >= 0``), bad [N] uint8 (BAD_* bits of the inputs holding NaN/inf: means, quats, scales and
+    opacities of every Gaussian; SH coefficients where they are read, i.e. the active degrees of kept pairs).
     """
     n_cams = viewmats.shape[0]
     n_gauss = means.shape[0]
     n_sh_cams = shs.shape[0]
-    n_coeffs = shs.shape[2]
     eps2d = params[P_EPS2D]
     near = params[P_NEAR]
     far = params[P_FAR]
@@ -197,15 +197,6 @@ def project_sh_fwd(means, quats, scales, opacities, shs, viewmats, Ks, campos, p
             flags |= BAD_SCALES
         if not math.isfinite(opacity):
             flags |= BAD_OPACITIES
-        if sh_degree >= 0:
-            # x - x is 0 for finite x and NaN for NaN/inf: one branch for all coefficients
-            total = 0.0
-            for cs in range(n_sh_cams):
-                for k in range(n_coeffs):
-                    for ch in range(3):
-                        total += shs[cs, n, k, ch] - shs[cs, n, k, ch]
-            if total != 0.0:
-                flags |= BAD_COLORS
         bad[n] = flags
         inv_norm = 1.0 / max(math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz), NORM_EPS)
         r00, r01, r02, r10, r11, r12, r20, r21, r22 = _quat_to_rotmat(qw * inv_norm, qx * inv_norm, qy * inv_norm,
@@ -309,6 +300,10 @@ def project_sh_fwd(means, quats, scales, opacities, shs, viewmats, Ks, campos, p
                 r = _sh_dot(shs, cs, n, 0, n_bases, bases)
                 g = _sh_dot(shs, cs, n, 1, n_bases, bases)
                 bl = _sh_dot(shs, cs, n, 2, n_bases, bases)
+                # a NaN/inf coefficient of the active degrees makes its channel's sum non-finite (no cancellation
+                # can make it finite): the check costs one test per kept pair instead of a pass over every coefficient
+                if not (math.isfinite(r) and math.isfinite(g) and math.isfinite(bl)):
+                    bad[n] |= BAD_COLORS
                 colors[c, n, 0] = max(r + offset, 0.0)
                 colors[c, n, 1] = max(g + offset, 0.0)
                 colors[c, n, 2] = max(bl + offset, 0.0)
