@@ -32,8 +32,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-#: Splatfacto's schedule length; ``--steps-scale auto`` compresses every step-based schedule to the budget.
-SPLATFACTO_SCHEDULE_STEPS = 30000
+from kc_splatfacto.engine.optimizers import SPLATFACTO_SCHEDULE_STEPS  # ``--steps-scale auto``: budget / this
+
 DEFAULT_METHODS = ("splatfacto", "kc-splatfacto")
 DEFAULT_BASELINE = "splatfacto"
 

@@ -107,8 +107,10 @@ class Trainer:
         return candidate
 
     def _build_optimizers(self) -> None:
+        # nominal schedules (nerfstudio's): steps_scale only, never max_num_iterations, so a short run is the first
+        # steps of the full one
         self.optimizers, self.schedulers = self.config.optimizers.setup(
-            self.model.gauss_params, max_steps=self.config.max_num_iterations
+            self.model.gauss_params, steps_scale=self.config.pipeline.model.steps_scale
         )
 
     # ----------------------------------------------------------------------------------------------- checkpoints
