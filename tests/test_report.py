@@ -132,7 +132,15 @@ def test_bench_two_methods_one_seed_demo(tmp_path):
     table = (out / "results.md").read_text()
     assert "splatfacto (baseline)" in table and "| kc-splatfacto |" in table
     assert (out / "command.txt").read_text().startswith("kc-bench --data demo")
-    assert not (out / "lpips_vs_time.png").exists()
+    from kc_splatfacto.lpips import lpips_available
+
+    if lpips_available("alex") is None:  # LPIPS weights installed (make install): a real LPIPS column and plot
+        assert all(r["lpips"] is not None and 0 < r["lpips"] < 1 and r["lpips_net"] == "alex" for r in rows)
+        assert "LPIPS (alex) ↓" in table
+        image = cv2.imread(str(out / "lpips_vs_time.png"), cv2.IMREAD_COLOR)
+        assert image is not None and image.std() > 0
+    else:
+        assert not (out / "lpips_vs_time.png").exists()
     gap = cv2.imread(str(out / "kurtosis_gap_demo.png"), cv2.IMREAD_COLOR)  # kurtosis is logged at step 10
     assert gap is not None and gap.std() > 0
 

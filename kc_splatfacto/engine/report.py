@@ -29,7 +29,10 @@ from kc_splatfacto.engine.figures import pyplot, save_figure
 METRICS = {"psnr": "higher", "ssim": "higher", "lpips": "lower"}
 METRIC_LABELS = {"psnr": "PSNR (dB)", "ssim": "SSIM", "lpips": "LPIPS"}
 #: Columns of the flat evaluation table, in order.
-EVAL_COLUMNS = ("scene", "method", "seed", "step", "elapsed_s", "train_s", "psnr", "ssim", "lpips", "num_images", "run_dir")
+EVAL_COLUMNS = (
+    "scene", "method", "seed", "step", "elapsed_s", "train_s", "psnr", "ssim", "lpips", "lpips_net", "num_images",
+    "run_dir",
+)
 DEFAULT_TIME_KEY = "train_s"
 
 
@@ -77,6 +80,7 @@ def eval_rows(records: Iterable[dict], scene: str, method: str, seed: int, run_d
                 "psnr": _number(record.get("psnr")),
                 "ssim": _number(record.get("ssim")),
                 "lpips": _number(record.get("lpips")),
+                "lpips_net": record.get("lpips_net") if record.get("lpips") is not None else None,
                 "num_images": record.get("num_images"),
                 "run_dir": str(run_dir),
             }
@@ -107,6 +111,7 @@ def read_rows_csv(path: str | Path) -> list[dict]:
             for key in ("elapsed_s", "train_s", "psnr", "ssim", "lpips"):
                 row[key] = float(row[key]) if row[key] not in ("", None) else None
             row["num_images"] = int(row["num_images"]) if row.get("num_images") not in ("", None) else None
+            row["lpips_net"] = row.get("lpips_net") or None
             rows.append(row)
     return rows
 
@@ -199,12 +204,26 @@ def plot_metric_vs_time(
         ) > 20:
             ax.set_xscale("log")
         ax.set_xlabel("training time (s, evaluation excluded)" if time_key == "train_s" else "wall-clock time (s)")
-        ax.set_ylabel(METRIC_LABELS.get(metric, metric))
-        ax.set_title(f"{scene}: {METRIC_LABELS.get(metric, metric)} vs time (mean, min-max over seeds)", fontsize=9)
+        label = metric_label(metric, rows)
+        ax.set_ylabel(label)
+        ax.set_title(f"{scene}: {label} vs time (mean, min-max over seeds)", fontsize=9)
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=8)
     path = save_figure(fig, path, dpi=120)
     return curves
+
+
+def lpips_networks(rows: Sequence[dict]) -> list[str]:
+    """The LPIPS backbones the rows' values were measured with (normally one, 'alex')."""
+    return sorted({row["lpips_net"] for row in rows if row.get("lpips") is not None and row.get("lpips_net")})
+
+
+def metric_label(metric: str, rows: Sequence[dict] = ()) -> str:
+    """Axis/table label; LPIPS names its network (``LPIPS (alex)``)."""
+    label = METRIC_LABELS.get(metric, metric)
+    if metric == "lpips" and lpips_networks(rows):
+        label = f"{label} ({', '.join(lpips_networks(rows))})"
+    return label
 
 
 def final_rows(rows: Sequence[dict]) -> list[dict]:
@@ -270,10 +289,12 @@ def _signed(value: float | None, digits: int, unit: str) -> str:
     return "" if value is None else f" ({value:+.{digits}f}{unit})"
 
 
-def markdown_table(summary: Sequence[dict], baseline: str | None = None, lpips_note: str | None = None) -> str:
+def markdown_table(
+    summary: Sequence[dict], baseline: str | None = None, lpips_note: str | None = None, lpips_label: str = "LPIPS"
+) -> str:
     """Markdown table of the final metrics (mean ± std over seeds), deltas vs ``baseline`` in parentheses."""
     lines = [
-        "| scene | method | seeds | step | PSNR (dB) ↑ | SSIM ↑ | LPIPS ↓ | train time (s) |",
+        f"| scene | method | seeds | step | PSNR (dB) ↑ | SSIM ↑ | {lpips_label} ↓ | train time (s) |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for e in summary:
@@ -335,14 +356,14 @@ def markdown_paired_table(paired: Sequence[dict], baseline: str) -> str:
     lines = [
         f"Per-seed differences to `{baseline}` at the same seed (final evaluation):",
         "",
-        "| scene | method | seeds | ΔPSNR per seed (dB) | mean | ΔSSIM per seed (%) | mean |",
-        "|---|---|---|---|---|---|---|",
+        "| scene | method | seeds | ΔPSNR per seed (dB) | mean | ΔSSIM per seed (%) | mean | ΔLPIPS per seed (%) | mean |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for e in paired:
         seeds = " / ".join(str(s) for s in e["seeds"])
         lines.append(
             f"| {e['scene']} | {e['method']} | {seeds} | {cells(e['psnr_db'], e['psnr_db_mean'], 2)} | "
-            f"{cells(e['ssim_pct'], e['ssim_pct_mean'], 2)} |"
+            f"{cells(e['ssim_pct'], e['ssim_pct_mean'], 2)} | {cells(e['lpips_pct'], e['lpips_pct_mean'], 2)} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -367,7 +388,7 @@ def write_report(
     paths["summary"] = out_dir / "summary.json"
     paths["summary"].write_text(json.dumps(summary, indent=1))
     paths["table"] = out_dir / "results.md"
-    table = markdown_table(summary, baseline, lpips_note)
+    table = markdown_table(summary, baseline, lpips_note, lpips_label=metric_label("lpips", rows))
     if baseline:
         paired = markdown_paired_table(paired_deltas(rows, baseline), baseline)
         table += ("\n" + paired) if paired else ""
