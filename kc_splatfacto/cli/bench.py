@@ -198,6 +198,7 @@ def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
                 (out_dir / "runs.json").write_text(json.dumps(runs, indent=1))
                 paths = write_report(rows, out_dir, baseline=baseline, time_key=args.time_key, lpips_note=lpips_note)
     paths.update(write_kurtosis_gap_plots(runs, out_dir))
+    paths.update(write_gradient_share_plots(runs, out_dir))
     paths["command"] = out_dir / "command.txt"
     paths["runs"] = out_dir / "runs.json"
     return paths
@@ -223,6 +224,25 @@ def write_kurtosis_gap_plots(runs: Sequence[dict], out_dir: Path) -> dict[str, P
             )
         except ValueError as exc:  # runs shorter than the logging interval carry no kurtosis
             print(f"[kc-bench] no kurtosis gap plot for {scene}: {exc}", flush=True)
+    return paths
+
+
+def write_gradient_share_plots(runs: Sequence[dict], out_dir: Path) -> dict[str, Path]:
+    """Per scene, ``gradient_shares_<scene>.png``: each loss term's image-gradient norm relative to the photometric
+    term's over training, one panel per method, for the lowest seed (:func:`report.plot_gradient_shares`)."""
+    from kc_splatfacto.engine.report import plot_gradient_shares, read_metrics_jsonl
+
+    paths = {}
+    for scene in dict.fromkeys(r["scene"] for r in runs):
+        seed = min(r["seed"] for r in runs if r["scene"] == scene)
+        records = {
+            r["method"]: read_metrics_jsonl(Path(r["run_dir"]) / "metrics.jsonl")
+            for r in runs
+            if r["scene"] == scene and r["seed"] == seed
+        }
+        path = plot_gradient_shares(records, out_dir / f"gradient_shares_{scene}.png", title=f"{scene}, seed {seed}")
+        if path is not None:
+            paths[f"gradient_shares_{scene}"] = path
     return paths
 
 

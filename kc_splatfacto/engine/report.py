@@ -6,7 +6,9 @@ Input: the evaluation records every run writes (``{"kind": "eval", "step", "elap
 - per metric, a PNG of the metric against training seconds, one curve per method (mean over seeds, shaded min-max
   spread over seeds), one panel per scene,
 - a markdown table of the final evaluation of every method with the paper's kind of relative deltas against a
-  baseline method (dB for PSNR, % for SSIM and LPIPS, x for time).
+  baseline method (dB for PSNR, % for SSIM and LPIPS, x for time),
+- per scene, the gradient shares of the loss terms against step (:func:`plot_gradient_shares`; a term whose share
+  stays far below 1 % does next to nothing at its weight).
 
 Time axis: ``train_s`` (seconds spent in training steps, evaluation excluded) by default, so methods are compared
 on what their training costs, not on how often they were evaluated.
@@ -398,3 +400,42 @@ def write_report(
         if plot_metric_vs_time(rows, metric, png, time_key, baseline):
             paths[f"plot_{metric}"] = png
     return paths
+
+
+def gradient_share_series(records: Iterable[dict]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """From one run's ``metrics.jsonl`` records: per loss term, (steps [T], share of the photometric term [T])."""
+    series: dict[str, tuple[list, list]] = {}
+    for record in records:
+        if record.get("kind") != "gradient_shares":
+            continue
+        for term, share in (record.get("share") or {}).items():
+            steps, values = series.setdefault(term, ([], []))
+            steps.append(int(record["step"]))
+            values.append(np.nan if share is None else float(share))
+    return {term: (np.array(steps), np.array(values)) for term, (steps, values) in series.items()}
+
+
+def plot_gradient_shares(records_by_label: dict[str, Sequence[dict]], path: str | Path, title: str = "") -> Path | None:
+    """PNG of each loss term's image-gradient norm relative to the photometric term's, against step (log y), one
+    panel per run label (e.g. method). Returns None (no file) when no run logged ``gradient_shares`` records."""
+    panels = {label: gradient_share_series(records) for label, records in records_by_label.items()}
+    panels = {label: series for label, series in panels.items() if any(t != "main_loss" for t in series)}
+    if not panels:
+        return None
+    plt = pyplot()
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4.0), squeeze=False)
+    for ax, (label, series) in zip(axes[0], panels.items()):
+        for term, (steps, shares) in series.items():
+            if term == "main_loss":
+                continue
+            positive = np.where(shares > 0, shares, np.nan)  # a zero share cannot be drawn on a log axis
+            zeros = int((shares == 0).sum())
+            ax.plot(steps, 100 * positive, "-o", ms=3, label=term + (f" (exactly 0 at {zeros} steps)" if zeros else ""))
+        ax.axhline(100, color="black", lw=0.8, ls="--", label="main_loss (= 100 %)")
+        ax.set_yscale("log")
+        ax.set_xlabel("step")
+        ax.set_ylabel("||d term / d image|| / ||d main_loss / d image|| (%)")
+        ax.set_title(f"{title + ': ' if title else ''}{label}", fontsize=9)
+        ax.grid(True, alpha=0.3, which="both")
+        ax.legend(fontsize=8)
+    return save_figure(fig, path, dpi=120)
