@@ -5,8 +5,14 @@ log-spaced steps (``eval_at_steps``); the report (:mod:`kc_splatfacto.engine.rep
 ``--output-dir``: ``evals.csv`` / ``evals.json`` (every evaluation), ``summary.json``, ``results.md`` (final metrics
 with deltas vs the baseline, also per seed), ``<metric>_vs_time.png``, ``kurtosis_gap_<scene>.png`` (the render-vs-GT
 band-kurtosis gap over training) and ``command.txt`` (the exact command line). The report is
-rewritten after every finished run, so an interrupted benchmark still leaves the runs it finished; ``--resume`` skips
-runs whose folder already holds a final evaluation.
+rewritten after every finished run, so an interrupted benchmark still leaves the runs it finished.
+
+``--resume`` continues a stopped study where it stopped, with the same command line plus ``--resume``: a run whose
+folder already holds its final evaluation is reused as it is; an interrupted run (its folder holds a checkpoint,
+written every ``--steps-per-save`` steps) continues from its last checkpoint in the same folder, its
+``metrics.jsonl`` first cut back to that step so that nothing is logged twice; an interrupted run without a
+checkpoint starts again (its old log kept as ``metrics.interrupted.jsonl``). A run folder whose ``config.yml`` holds
+another model config or seed than the command asks for is an error, not silently mixed in.
 
 Example (the committed castle-P30 result)::
 
@@ -125,6 +131,56 @@ def build_run_config(
     return config
 
 
+def resume_point(run_dir: Path, config: Any) -> Path | None:
+    """Prepare an interrupted run folder for ``--resume``: the checkpoint to continue from, or None (start again).
+
+    The folder's ``config.yml`` must describe the same model and seed as ``config`` (else ValueError). Records logged
+    after the checkpoint's step are cut from ``metrics.jsonl`` (atomically), since the resumed run logs them again;
+    without a checkpoint the log is moved aside to ``metrics.interrupted.jsonl`` and the run starts from scratch.
+    """
+    import dataclasses
+
+    from kc_splatfacto.atomic import atomic_write_text
+    from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, CHECKPOINT_PATTERN, list_checkpoints
+    from kc_splatfacto.engine.config import load_config
+
+    saved_path = run_dir / "config.yml"
+    if saved_path.is_file():
+        saved = load_config(saved_path)
+        mismatch = [
+            name for name, a, b in (
+                ("pipeline.model", dataclasses.asdict(saved.pipeline.model), dataclasses.asdict(config.pipeline.model)),
+                ("machine.seed", saved.machine.seed, config.machine.seed),
+                ("optimizers", dataclasses.asdict(saved.optimizers), dataclasses.asdict(config.optimizers)),
+            ) if a != b
+        ]
+        if mismatch:
+            raise ValueError(
+                f"--resume: {run_dir} was trained with another {', '.join(mismatch)} than this command asks for; "
+                f"rerun with the original command, or pass another --runs-dir"
+            )
+    log = run_dir / "metrics.jsonl"
+    checkpoints = list_checkpoints(run_dir / CHECKPOINT_DIR)
+    if not checkpoints:
+        if log.is_file():
+            log.replace(run_dir / "metrics.interrupted.jsonl")
+        return None
+    step = int(CHECKPOINT_PATTERN.match(checkpoints[-1].name).group(1))
+    if log.is_file():
+        kept = []
+        for line in log.read_text().splitlines():
+            if not line.strip():
+                continue
+            try:
+                record = json.loads(line)
+            except json.JSONDecodeError:  # a line cut by the interruption
+                continue
+            if int(record.get("step", 0)) <= step:
+                kept.append(line)
+        atomic_write_text(log, "".join(line + "\n" for line in kept))
+    return checkpoints[-1].parent
+
+
 def _finished(run_dir: Path, max_steps: int) -> bool:
     from kc_splatfacto.engine.report import read_metrics_jsonl
 
@@ -173,12 +229,17 @@ def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
                     experiment=scene, downscale_factor=args.downscale_factor, steps_scale=steps_scale,
                     device=args.device, overrides=args.set,
                 )
+                config.steps_per_save = args.steps_per_save if args.steps_per_save > 0 else args.max_num_iterations
                 expected_dir = Path(runs_dir) / scene / method / f"seed{seed}"
                 start = time.perf_counter()
+                status = "trained"
                 if args.resume and _finished(expected_dir, args.max_num_iterations):
                     run_dir, status = expected_dir, "reused"
                 else:
-                    run_dir, status = Path(Trainer(config).train()), "trained"
+                    if args.resume and expected_dir.is_dir():
+                        config.load_dir = resume_point(expected_dir, config)
+                        status = "resumed" if config.load_dir is not None else "restarted"
+                    run_dir = Path(Trainer(config).train())
                 records = read_metrics_jsonl(run_dir / "metrics.jsonl")
                 new_rows = eval_rows(records, scene, method, seed, run_dir)
                 rows += new_rows
@@ -271,7 +332,11 @@ def build_parser() -> argparse.ArgumentParser:
                         help="dotted config overrides applied to every run, e.g. pipeline.model.rasterization_backend=cpu")
     parser.add_argument("--output-dir", type=Path, default=Path("bench"), help="report folder")
     parser.add_argument("--runs-dir", type=Path, default=None, help="run folders (default OUTPUT_DIR/runs)")
-    parser.add_argument("--resume", action="store_true", help="reuse runs that already reached the budget")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue a stopped study: reuse finished runs, resume interrupted ones from their last "
+                             "checkpoint (same command line plus --resume)")
+    parser.add_argument("--steps-per-save", type=int, default=1000,
+                        help="checkpoint every this many steps (what --resume continues from; 0: only at the end)")
     return parser
 
 

@@ -63,7 +63,7 @@ def _number(value) -> float | None:
 
 
 def eval_rows(records: Iterable[dict], scene: str, method: str, seed: int, run_dir: str | Path = "") -> list[dict]:
-    """The evaluation records of one run as flat rows (:data:`EVAL_COLUMNS`), sorted by step."""
+    """The evaluation records of one run as flat rows (:data:`EVAL_COLUMNS`), sorted by step, one per step."""
     rows = []
     for record in records:
         if record.get("kind") != "eval":
@@ -87,6 +87,8 @@ def eval_rows(records: Iterable[dict], scene: str, method: str, seed: int, run_d
                 "run_dir": str(run_dir),
             }
         )
+    # one row per step: a log continued after an interruption may repeat a step; the later record wins
+    rows = list({row["step"]: row for row in rows}.values())
     rows.sort(key=lambda row: row["step"])
     return rows
 
