@@ -11,7 +11,8 @@ that only costs time); ``top_t`` says whether its pull is spread over the image 
 Terms without a path to the image (e.g. ``scale_reg``) have no image gradient and are left out.
 
 Only the loss graph is differentiated (``torch.autograd.grad`` w.r.t. the image, graph retained), never the
-rasterizer, so the step's own backward and density-control statistics are untouched; a few ms per logged step.
+rasterizer, so the step's own backward and density-control statistics are untouched; about 60 ms per
+logged step for the four terms of a 192x128 render on the 2-core CPU here (once every 100 steps by default).
 Optionally, for a one-off measurement, also w.r.t. other tensors such as the means (``wrt``): that runs the
 rasterizer's backward once per term and would add to ``means2d.absgrad``, so the trainer never asks for it.
 """
