@@ -121,7 +121,7 @@ def load_weight_file(path: Path | str) -> dict[str, Any]:
     with open(path, "rb") as handle:
         try:
             tree = _NumpyOnlyUnpickler(handle).load()
-        except (pickle.UnpicklingError, EOFError, TypeError, ValueError) as exc:
+        except Exception as exc:  # garbage raises anything from EOFError to KeyError (a bad memo reference)
             raise ValueError(f"{path} is not a valid LPIPS weight file ({exc}); reinstall: {INSTALL_COMMAND}") from exc
     if not isinstance(tree, dict):
         raise ValueError(f"{path} is not a valid LPIPS weight file (top level is {type(tree).__name__}, not a dict)")

