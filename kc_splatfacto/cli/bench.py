@@ -54,6 +54,14 @@ def log_spaced_steps(max_steps: int, num: int) -> tuple[int, ...]:
     return tuple(int(s) for s in sorted(set(steps.tolist()) | {max_steps}))
 
 
+def evaluation_steps(max_steps: int, num: int, extra: Sequence[int] = ()) -> tuple[int, ...]:
+    """:func:`log_spaced_steps` plus the ``extra`` steps (e.g. 7000 in a 30000-step run); each in [1, max_steps]."""
+    outside = [s for s in extra if not 1 <= s <= max_steps]
+    if outside:
+        raise ValueError(f"--eval-at-steps {outside}: evaluation steps must lie in [1, --max-num-iterations={max_steps}]")
+    return tuple(sorted(set(log_spaced_steps(max_steps, num)) | {int(s) for s in extra}))
+
+
 def _coerce(text: str, current: Any) -> Any:
     """Parse ``text`` to the type of the field's current value (bool/int/float/Path/str/None, tuples of ints)."""
     if isinstance(current, bool):
@@ -207,7 +215,7 @@ def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
     runs_dir = Path(args.runs_dir) if args.runs_dir else out_dir / "runs"
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "command.txt").write_text("kc-bench " + " ".join(shlex.quote(a) for a in argv) + "\n")
-    eval_steps = log_spaced_steps(args.max_num_iterations, args.num_evals)
+    eval_steps = evaluation_steps(args.max_num_iterations, args.num_evals, args.eval_at_steps)
     if args.steps_scale == "auto":
         steps_scale = args.max_num_iterations / SPLATFACTO_SCHEDULE_STEPS
     elif args.steps_scale == "none":
@@ -318,6 +326,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--max-num-iterations", type=int, default=1000, help="the step budget of every run")
     parser.add_argument("--num-evals", type=int, default=8, help="log-spaced test evaluations per run")
+    parser.add_argument("--eval-at-steps", type=int, nargs="*", default=[],
+                        help="extra evaluation steps besides the log-spaced ones (e.g. 7000 in a 30000-step study)")
     parser.add_argument("--downscale-factor", type=int, default=None, help="image downscale handed to the dataparser")
     parser.add_argument(
         "--steps-scale", default="none",

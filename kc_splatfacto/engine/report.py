@@ -36,6 +36,8 @@ EVAL_COLUMNS = (
     "run_dir",
 )
 DEFAULT_TIME_KEY = "train_s"
+INTERVAL_LEVEL = 0.95
+"""two-sided confidence level of the interval on a mean paired difference (Student t over seeds)"""
 
 
 def read_metrics_jsonl(path: str | Path) -> list[dict]:
@@ -321,12 +323,25 @@ def markdown_table(
     return "\n".join(lines + notes) + "\n"
 
 
+def mean_interval(values: Sequence[float], level: float = INTERVAL_LEVEL) -> tuple[float, float] | None:
+    """Student-t interval on the mean of ``values`` (paired differences over seeds): mean -/+ t_{(1+level)/2, n-1}
+    s / sqrt(n), s the sample std (ddof 1). None for fewer than two values."""
+    from scipy.stats import t as student_t
+
+    values = np.asarray([v for v in values if v is not None], dtype=np.float64)
+    if values.size < 2:
+        return None
+    half = float(student_t.ppf((1 + level) / 2, values.size - 1) * values.std(ddof=1) / np.sqrt(values.size))
+    return float(values.mean() - half), float(values.mean() + half)
+
+
 def paired_deltas(rows: Sequence[dict], baseline: str) -> list[dict]:
     """Per (scene, method), the final-metric differences to ``baseline`` run with the same seed.
 
     Runs that share a seed share the initial Gaussians and the image order, so pairing removes the seed-to-seed
     variation that dominates short runs. Returns ``seeds``, ``psnr_db`` (per-seed differences, dB), ``ssim_pct``
-    and ``lpips_pct`` (relative, %; None where unavailable), with their ``_mean``.
+    and ``lpips_pct`` (relative, %; None where unavailable), with their ``_mean`` and ``_interval`` (95 % Student t
+    interval of the mean over seeds, None with fewer than two seeds: :func:`mean_interval`).
     """
     finals = {(r["scene"], r["method"], r["seed"]): r for r in final_rows(rows)}
     out = []
@@ -343,6 +358,7 @@ def paired_deltas(rows: Sequence[dict], baseline: str) -> list[dict]:
             entry[key] = values
             present = [v for v in values if v is not None]
             entry[f"{key}_mean"] = float(np.mean(present)) if present else None
+            entry[f"{key}_interval"] = mean_interval(present)
         out.append(entry)
     return out
 
@@ -352,22 +368,27 @@ def markdown_paired_table(paired: Sequence[dict], baseline: str) -> str:
     if not paired:
         return ""
 
-    def cells(values: list, mean: float | None, digits: int) -> str:
+    def cells(values: list, mean: float | None, digits: int, interval: tuple[float, float] | None = None) -> str:
         if mean is None:
             return "n/a | n/a"
-        return " / ".join(f"{v:+.{digits}f}" for v in values) + f" | {mean:+.{digits}f}"
+        ci = f" [{interval[0]:+.{digits}f}, {interval[1]:+.{digits}f}]" if interval is not None else ""
+        return " / ".join(f"{v:+.{digits}f}" for v in values) + f" | {mean:+.{digits}f}{ci}"
 
     lines = [
-        f"Per-seed differences to `{baseline}` at the same seed (final evaluation):",
+        f"Per-seed differences to `{baseline}` at the same seed (final evaluation); mean with its "
+        f"{100 * INTERVAL_LEVEL:.0f} % Student t interval over seeds in brackets:",
         "",
-        "| scene | method | seeds | ΔPSNR per seed (dB) | mean | ΔSSIM per seed (%) | mean | ΔLPIPS per seed (%) | mean |",
+        "| scene | method | seeds | ΔPSNR per seed (dB) | mean [CI] | ΔSSIM per seed (%) | mean [CI] "
+        "| ΔLPIPS per seed (%) | mean [CI] |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for e in paired:
         seeds = " / ".join(str(s) for s in e["seeds"])
         lines.append(
-            f"| {e['scene']} | {e['method']} | {seeds} | {cells(e['psnr_db'], e['psnr_db_mean'], 2)} | "
-            f"{cells(e['ssim_pct'], e['ssim_pct_mean'], 2)} | {cells(e['lpips_pct'], e['lpips_pct_mean'], 2)} |"
+            f"| {e['scene']} | {e['method']} | {seeds} | "
+            f"{cells(e['psnr_db'], e['psnr_db_mean'], 2, e.get('psnr_db_interval'))} | "
+            f"{cells(e['ssim_pct'], e['ssim_pct_mean'], 2, e.get('ssim_pct_interval'))} | "
+            f"{cells(e['lpips_pct'], e['lpips_pct_mean'], 2, e.get('lpips_pct_interval'))} |"
         )
     return "\n".join(lines) + "\n"
 
