@@ -3,14 +3,15 @@
 JSON shape (ns-eval's, plus what a reader needs to trust the numbers)::
 
     {"experiment_name", "method_name", "checkpoint", "step",
-     "results": {"psnr", "psnr_std", "ssim", "ssim_std", "lpips", "lpips_std", "lpips_unavailable",
+     "results": {"psnr", "psnr_std", "ssim", "ssim_std", "lpips", "lpips_std", "lpips_net", "lpips_unavailable",
                  "num_rays_per_sec", "fps", "num_images"},
      "per_image": [{"index", "image", "psnr", "ssim", "lpips"}],
      "ssim_convention": "...", "psnr_convention": "..."}
 
 PSNR and SSIM are computed per image on the float render against the float ground truth by the trainer's own
-``evaluate_split``, then averaged (std over images, population). LPIPS needs pretrained network weights that are not available offline; it is
-reported as null with the reason rather than approximated.
+``evaluate_split``, then averaged (std over images, population). LPIPS is v0.1 with AlexNet (``lpips_net``; see
+:mod:`kc_splatfacto.lpips`); where its weights are not installed it is null with the reason (and the install
+command), never approximated.
 """
 
 from __future__ import annotations
@@ -31,10 +32,6 @@ SSIM_CONVENTION = (
     "mean over pixels and RGB channels of one image in [0,1]; the training loss uses 1 - SSIM"
 )
 PSNR_CONVENTION = "PSNR = -10 log10(MSE) over pixels and RGB channels of one image in [0,1], averaged over images"
-LPIPS_UNAVAILABLE = (
-    "LPIPS needs pretrained AlexNet/VGG weights (the lpips package or torchvision) that cannot be downloaded here; "
-    "not approximated"
-)
 
 
 def checkpoint_path(run_dir: Path, step: int) -> Path:
@@ -67,9 +64,11 @@ def evaluate_loaded_run(loaded, split: str = "test") -> dict:
     evaluation = evaluate_split(loaded.model, dataset)
     height, width = dataset.image_float(0).shape[:2]
     fps = evaluation.get("render_fps")
-    results = {key: evaluation.get(key) for key in ("psnr", "psnr_std", "ssim", "ssim_std", "lpips", "lpips_std")}
+    results = {
+        key: evaluation.get(key) for key in ("psnr", "psnr_std", "ssim", "ssim_std", "lpips", "lpips_std", "lpips_net")
+    }
     if results["lpips"] is None:
-        results["lpips_unavailable"] = evaluation.get("lpips_unavailable") or LPIPS_UNAVAILABLE
+        results["lpips_unavailable"] = evaluation.get("lpips_unavailable")
     results.update(
         {
             "fps": fps,
@@ -121,7 +120,7 @@ def entrypoint(argv: list[str] | None = None) -> int:
         print(f"kc-eval: error: {exc}", file=sys.stderr)
         return 2
     r = payload["results"]
-    lpips = "LPIPS n/a" if r["lpips"] is None else f"LPIPS {r['lpips']:.4f}"
+    lpips = "LPIPS n/a" if r["lpips"] is None else f"LPIPS({r['lpips_net']}) {r['lpips']:.4f}"
     print(
         f"{payload['method_name']} step {payload['step']}: PSNR {r['psnr']:.3f} ± {r['psnr_std']:.3f} dB, "
         f"SSIM {r['ssim']:.4f} ± {r['ssim_std']:.4f}, {lpips}, {r['fps']:.1f} fps over {r['num_images']} images "

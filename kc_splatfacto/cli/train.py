@@ -61,7 +61,7 @@ def entrypoint(argv: list[str] | None = None) -> int:
         lpips_text = f"{lpips:.4f}" if lpips is not None else f"n/a ({final.get('lpips_unavailable')})"
         print(
             f"final {final.get('split', 'test')} metrics at step {final['step']} over {final['num_images']} images: "
-            f"PSNR {final['psnr']:.3f} dB, SSIM {final['ssim']:.4f}, LPIPS {lpips_text}"
+            f"PSNR {final['psnr']:.3f} dB, SSIM {final['ssim']:.4f}, LPIPS({final.get('lpips_net', 'alex')}) {lpips_text}"
         )
     print(f"gaussians: {trainer.model.num_points}, training time: {trainer._train_s:.1f} s")
     print(f"output folder: {run_dir}")

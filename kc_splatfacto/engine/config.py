@@ -110,6 +110,9 @@ class LoggingConfig:
     """one-line progress bar on stderr (it/s, ETA, loss, Gaussian count)"""
     profile_phases: bool = False
     """synchronize and time each phase of a step (render, losses, backward, optimizer, density control)"""
+    steps_per_gradient_shares: int = 100
+    """every this many steps a ``gradient_shares`` record: each loss term's image-gradient norm relative to the
+    photometric term's (engine/gradient_shares.py; ~60 ms on a 192x128 CPU render, excluded from train_s); 0 turns it off"""
 
 
 @dataclass

@@ -32,6 +32,7 @@ import torch
 from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, find_checkpoint, load_checkpoint, save_checkpoint
 from kc_splatfacto.engine.config import TrainerConfig, save_config
 from kc_splatfacto.engine.evaluation import evaluate_split
+from kc_splatfacto.engine.gradient_shares import gradient_shares
 from kc_splatfacto.engine.logging import MetricsWriter, ProgressBar
 from kc_splatfacto.model import ops
 from kc_splatfacto.model.strategy import NoGaussiansLeftError
@@ -79,6 +80,7 @@ class Trainer:
         self._stop_requested = False
         self._elapsed_offset = 0.0
         self._train_s = 0.0
+        self._side_s = 0.0  # logging work inside a step (gradient shares), kept out of train_s
         self._bad_in_a_row = 0
 
     # ----------------------------------------------------------------------------------------------- set-up
@@ -119,8 +121,10 @@ class Trainer:
         return candidate
 
     def _build_optimizers(self) -> None:
+        # nominal schedules (nerfstudio's): steps_scale only, never max_num_iterations, so a short run is the first
+        # steps of the full one
         self.optimizers, self.schedulers = self.config.optimizers.setup(
-            self.model.gauss_params, max_steps=self.config.max_num_iterations
+            self.model.gauss_params, steps_scale=self.config.pipeline.model.steps_scale
         )
 
     # ----------------------------------------------------------------------------------------------- checkpoints
@@ -292,6 +296,8 @@ class Trainer:
             if not bool(torch.isfinite(loss)):
                 bad = "non-finite loss (" + ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in loss_dict.items()) + ")"
             else:
+                self._log_gradient_shares(step + 1, loss_dict, outputs["rgb"])
+                t = time.perf_counter()
                 loss.backward()
                 t = self._tick("backward", t)
                 bad = self._grad_problem()
@@ -337,7 +343,8 @@ class Trainer:
                 while step < cfg.max_num_iterations and not self._stop_requested:
                     t_step = time.perf_counter()
                     losses = self.train_iteration(step)
-                    self._train_s += time.perf_counter() - t_step
+                    self._train_s += time.perf_counter() - t_step - self._side_s
+                    self._side_s = 0.0
                     step += 1
                     if losses and step % cfg.logging.steps_per_log == 0:
                         self._log_train(step, losses)
@@ -359,6 +366,16 @@ class Trainer:
                 signal.signal(signal.SIGINT, previous_handler)
             self.writer.close()
         return self.run_dir
+
+    def _log_gradient_shares(self, step: int, loss_dict: dict[str, torch.Tensor], image: torch.Tensor) -> None:
+        every = self.config.logging.steps_per_gradient_shares
+        if every <= 0 or step % every != 0:
+            return
+        start = time.perf_counter()
+        record = {"kind": "gradient_shares", "step": step, "elapsed_s": self._elapsed(), "train_s": self._train_s,
+                  "reference": "main_loss", **gradient_shares(loss_dict, image)}
+        self.writer.write(record)
+        self._side_s += time.perf_counter() - start
 
     def _log_train(self, step: int, losses: dict[str, float]) -> None:
         record: dict[str, Any] = {"kind": "train", "step": step, "elapsed_s": self._elapsed(), "train_s": self._train_s}
