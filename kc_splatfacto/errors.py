@@ -19,5 +19,9 @@ class ConfigFileError(UserError, ValueError):
     """A ``config.yml`` that cannot be read back (garbage, or objects other than the project's configs)."""
 
 
+class ConfigFileNotFoundError(ConfigFileError, FileNotFoundError):
+    """No ``config.yml`` where one was given."""
+
+
 class ResumeError(UserError, ValueError):
     """A resume (``--load-dir``) that would not continue the same run."""

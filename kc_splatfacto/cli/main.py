@@ -36,3 +36,12 @@ def run_cli(prog: str, main: Callable[[list[str]], int], argv: Sequence[str] | N
             message = message[len(prefix):]
         print(f"{prog}: error: {message}", file=sys.stderr)
         return USER_ERROR_EXIT
+
+
+def check_output_path(path, what: str) -> None:
+    """The folder of an output file must be writable: checked before the (slow) run loading."""
+    from pathlib import Path
+
+    from kc_splatfacto.engine.run_guard import check_writable_folder
+
+    check_writable_folder(Path(path).absolute().parent, f"the folder of {what}")
