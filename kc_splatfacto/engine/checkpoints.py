@@ -115,11 +115,16 @@ def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> dic
     try:
         with torch.serialization.safe_globals(_numpy_rng_globals()):
             payload = torch.load(path, map_location=map_location, weights_only=True)
-    except pickle.UnpicklingError as exc:  # weights_only refused a global: code, not data
-        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    except pickle.UnpicklingError as exc:
+        refused = re.search(r"Unsupported global: GLOBAL (\S+)", str(exc))
+        if refused:  # weights_only refused a global: the file asks to run code, not to rebuild data
+            raise CheckpointError(
+                f"checkpoint {path} holds objects other than tensors and plain values ({refused.group(1)}); "
+                "refusing to load it, since it could run code"
+            ) from exc
         raise CheckpointError(
-            f"checkpoint {path} holds objects other than tensors and plain values; refusing to load it "
-            f"(it could run code): {first}"
+            f"checkpoint {path} is truncated or not a checkpoint ({str(exc)[:200]}): resume from an older step "
+            "with --load-step, or delete it"
         ) from exc
     except (RuntimeError, EOFError, zipfile.BadZipFile, ValueError, OSError) as exc:
         raise CheckpointError(
