@@ -30,7 +30,7 @@ def run_cli(prog: str, main: Callable[[list[str]], int], argv: Sequence[str] | N
     except UserError as exc:
         if debug:
             raise
-        message = str(exc)
+        message = " ".join(line.strip() for line in str(exc).splitlines() if line.strip())  # one line
         prefix = f"{prog}: "
         if message.startswith(prefix):  # some messages already name the tool
             message = message[len(prefix):]

@@ -131,7 +131,9 @@ def load_yaml(text: str, source: str = "<config>") -> Any:
     try:
         return yaml.load(text, Loader=loader_class)  # noqa: S506 (a SafeLoader subclass)
     except yaml.YAMLError as exc:
-        raise ConfigFileError(f"{source} is not valid YAML ({exc}); pass the config.yml a run wrote") from exc
+        mark = getattr(exc, "problem_mark", None)
+        where = f" (line {mark.line + 1}: {getattr(exc, 'problem', None) or 'parse error'})" if mark else ""
+        raise ConfigFileError(f"{source} is not valid YAML{where}: pass the config.yml a run wrote") from exc
 
 
 def read_config_file(path: Path | str) -> Any:
