@@ -216,11 +216,14 @@ def test_downscaled_copy_is_rebuilt_when_its_source_changes(fountain_p11, tmp_pa
 
 
 def test_downscale_that_leaves_no_pixels_is_refused_before_anything_is_written(fountain_p11, tmp_path):
-    scene = scene_variant(fountain_p11, tmp_path / "scene", with_lists=False)
+    """Checked up front: not after the distorted images were already undistorted into the cache."""
+    line = camera_line("OPENCV", [*FOUNTAIN_K, -0.05, 0.01, 0.0, 0.0])
+    scene = scene_variant(fountain_p11, tmp_path / "scene", with_lists=False, cameras_txt=line)
+    before = sorted(p.name for p in scene.iterdir())
     config = ColmapDataParserConfig(data=scene, downscale_factor=1000)  # 768x512 images
     with pytest.raises(DataParserError, match="downscale_factor 1000 is too large"):
         config.setup().get_dataparser_outputs("train")
-    assert not (scene / "images_1000").exists()
+    assert sorted(p.name for p in scene.iterdir()) == before  # no images_undistorted_*/, no images_1000/
 
 
 def nerfstudio_colmap_reference(world_to_cameras):
