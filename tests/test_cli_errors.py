@@ -149,7 +149,7 @@ def castle_config(scene, output_dir, iterations=2):
     return config
 
 
-def test_kc_eval_works_from_another_working_directory(castle_p30, tmp_path, monkeypatch):
+def test_kc_eval_works_from_another_working_directory(castle_p30, tmp_path, monkeypatch, capsys):
     scene_variant(castle_p30, tmp_path / "work" / "scene")
     monkeypatch.chdir(tmp_path / "work")
     run_dir = Trainer(castle_config(Path("scene"), tmp_path / "out")).train()  # a relative --data
@@ -159,6 +159,24 @@ def test_kc_eval_works_from_another_working_directory(castle_p30, tmp_path, monk
     out = tmp_path / "m.json"
     assert kc_eval.entrypoint(["--load-config", str(run_dir / "config.yml"), "--output-path", str(out)]) == 0
     assert out.is_file()
+    # a run written before paths were stored absolute: one line saying what to do, not "check --data"
+    from kc_splatfacto.engine.config import load_config, save_config
+
+    config_yml = run_dir / "config.yml"
+    old_style = load_config(config_yml)
+    assert old_style.pipeline.datamanager.dataparser.data == tmp_path / "work" / "scene"  # stored absolute
+    old_style.pipeline.datamanager.dataparser.data = Path("scene")
+    old_style.pipeline.datamanager.data = Path("scene")
+    save_config(old_style, config_yml)
+    assert kc_eval.entrypoint(["--load-config", str(config_yml), "--output-path", str(out)]) == 2
+    assert "stores the scene as the relative path 'scene'" in one_error_line(capsys, "kc-eval")
+
+
+@pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="needs a machine without CUDA")
+def test_cuda_device_without_cuda_is_one_line(tmp_path, capsys):
+    argv = ["splatfacto", "--data", "demo", "--output-dir", str(tmp_path), "--machine.device", "cuda"]
+    assert kc_train.entrypoint(argv) == 2
+    assert "CUDA is not available here" in one_error_line(capsys, "kc-train")
 
 
 def test_zero_seed_points_say_so_with_the_count(castle_p30, tmp_path, capsys):

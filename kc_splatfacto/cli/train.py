@@ -56,8 +56,13 @@ def main(argv: list[str]) -> int:
     config = parse_config(argv)
 
     from kc_splatfacto.engine.trainer import Trainer, TrainingDivergedError
+    from kc_splatfacto.errors import UserError
     from kc_splatfacto.model.strategy import NoGaussiansLeftError
 
+    try:
+        config.machine.resolve_device()
+    except RuntimeError as exc:  # e.g. --machine.device cuda on a machine without CUDA: the flag, not a bug
+        raise UserError(str(exc)) from exc
     trainer = Trainer(config)
     try:
         run_dir = trainer.train()

@@ -172,6 +172,9 @@ class TransformsDataParser(DataParser):
                 path = next(
                     (path.with_suffix(s) for s in (".png", ".jpg", ".jpeg") if path.with_suffix(s).is_file()), path
                 )
+                if path.suffix:  # the file actually read must stay inside too
+                    named = str(Path(frame["file_path"]).with_suffix(path.suffix))
+                    inside_folder(base, named, f"{json_path} file_path", self.config.allow_symlinks_out)
             (frames if path.is_file() else missing).append((path, frame))
         if missing:
             warnings.warn(
