@@ -1,5 +1,7 @@
 """Bad scene input: each case is a clear DataParserError naming the file or argument and the fix."""
 
+import re
+
 import cv2
 import numpy as np
 import pytest
@@ -29,8 +31,14 @@ def test_missing_scene_folder(tmp_path):
 
 def test_folder_of_unknown_format_says_what_was_expected(tmp_path):
     (tmp_path / "images").mkdir()
-    with pytest.raises(DataParserError, match="cannot tell the format.*--dataparser"):
+    with pytest.raises(DataParserError, match="cannot tell the format") as caught:
         resolve_dataparser(tmp_path)
+    # the hint names a flag kc-train really has, and that flag really forces the parser
+    flag = re.search(r"(--\S+) NAME", str(caught.value)).group(1)
+    from kc_splatfacto.cli.train import parse_config
+
+    config = parse_config(["kc-splatfacto", "--data", str(tmp_path), flag, "colmap"])
+    assert config.pipeline.datamanager.dataparser_name == "colmap"
 
 
 def test_missing_model(castle_p30, tmp_path):

@@ -39,6 +39,11 @@ from typing import Any, Sequence
 import numpy as np
 
 from kc_splatfacto.engine.optimizers import SPLATFACTO_SCHEDULE_STEPS  # ``--steps-scale auto``: budget / this
+from kc_splatfacto.errors import UserError
+
+
+class BenchArgumentError(UserError, ValueError):
+    """A kc-bench argument that cannot work (a budget below 1, a bad --set, an unknown method)."""
 
 DEFAULT_METHODS = ("splatfacto", "kc-splatfacto")
 DEFAULT_BASELINE = "splatfacto"
@@ -47,9 +52,9 @@ DEFAULT_BASELINE = "splatfacto"
 def log_spaced_steps(max_steps: int, num: int) -> tuple[int, ...]:
     """About ``num`` distinct steps in [1, max_steps], geometrically spaced, always ending at ``max_steps``."""
     if max_steps < 1:
-        raise ValueError(f"max_steps must be >= 1, got {max_steps}")
+        raise BenchArgumentError(f"max_steps must be >= 1, got {max_steps}")
     if num < 1:
-        raise ValueError(f"the number of evaluations must be >= 1, got {num}")
+        raise BenchArgumentError(f"the number of evaluations must be >= 1, got {num}")
     steps = np.unique(np.round(np.geomspace(1, max_steps, num)).astype(int))
     return tuple(int(s) for s in sorted(set(steps.tolist()) | {max_steps}))
 
@@ -66,7 +71,7 @@ def _coerce(text: str, current: Any) -> Any:
     """Parse ``text`` to the type of the field's current value (bool/int/float/Path/str/None, tuples of ints)."""
     if isinstance(current, bool):
         if text.lower() not in ("true", "false", "1", "0"):
-            raise ValueError(f"expected true/false, got '{text}'")
+            raise BenchArgumentError(f"expected true/false, got '{text}'")
         return text.lower() in ("true", "1")
     if isinstance(current, int):
         return int(text)
@@ -88,16 +93,19 @@ def apply_override(config: Any, assignment: str) -> None:
     """Set a dotted field of a config from ``'pipeline.model.kc_weight=1e-4'`` (dashes read as underscores)."""
     key, sep, value = assignment.partition("=")
     if not sep:
-        raise ValueError(f"--set '{assignment}': expected dotted.field=value")
+        raise BenchArgumentError(f"--set '{assignment}': expected dotted.field=value")
     parts = key.strip().replace("-", "_").split(".")
     target = config
     for part in parts[:-1]:
         if not hasattr(target, part):
-            raise ValueError(f"--set '{assignment}': {type(target).__name__} has no field '{part}'")
+            raise BenchArgumentError(f"--set '{assignment}': {type(target).__name__} has no field '{part}'")
         target = getattr(target, part)
     if not hasattr(target, parts[-1]):
-        raise ValueError(f"--set '{assignment}': {type(target).__name__} has no field '{parts[-1]}'")
-    setattr(target, parts[-1], _coerce(value.strip(), getattr(target, parts[-1])))
+        raise BenchArgumentError(f"--set '{assignment}': {type(target).__name__} has no field '{parts[-1]}'")
+    try:
+        setattr(target, parts[-1], _coerce(value.strip(), getattr(target, parts[-1])))
+    except ValueError as exc:
+        raise BenchArgumentError(f"--set '{assignment}': {exc}") from exc
 
 
 def build_run_config(
@@ -163,7 +171,7 @@ def resume_point(run_dir: Path, config: Any) -> Path | None:
             ) if a != b
         ]
         if mismatch:
-            raise ValueError(
+            raise BenchArgumentError(
                 f"--resume: {run_dir} was trained with another {', '.join(mismatch)} than this command asks for; "
                 f"rerun with the original command, or pass another --runs-dir"
             )
@@ -210,7 +218,7 @@ def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
     methods_available = discover_methods()
     unknown = [m for m in args.methods if m not in methods_available]
     if unknown:
-        raise ValueError(f"unknown method(s) {unknown}; registered: {', '.join(methods_available) or 'none'}")
+        raise BenchArgumentError(f"unknown method(s) {unknown}; registered: {', '.join(methods_available) or 'none'}")
     out_dir = Path(args.output_dir)
     runs_dir = Path(args.runs_dir) if args.runs_dir else out_dir / "runs"
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -315,6 +323,14 @@ def write_gradient_share_plots(runs: Sequence[dict], out_dir: Path) -> dict[str,
     return paths
 
 
+def check_bench_args(args: argparse.Namespace) -> None:
+    """Refuse budgets that would train nothing, before the first run starts."""
+    if args.max_num_iterations < 1:
+        raise UserError(f"--max-num-iterations must be at least 1, got {args.max_num_iterations}")
+    if args.num_evals < 1:
+        raise UserError(f"--num-evals must be at least 1, got {args.num_evals}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="kc-bench",
@@ -351,13 +367,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def entrypoint(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
+    """``kc-bench``: user errors are one line and exit code 2 (``--debug`` shows the traceback)."""
+    from kc_splatfacto.cli.main import run_cli
+
+    return run_cli("kc-bench", main, argv)
+
+
+def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        paths = run_bench(args, argv)
-    except (FileNotFoundError, ValueError) as exc:
-        print(f"kc-bench: error: {exc}", file=sys.stderr)
-        return 2
+    check_bench_args(args)
+    paths = run_bench(args, argv)
     for name, path in paths.items():
         print(f"{name}: {path}")
     return 0

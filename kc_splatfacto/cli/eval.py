@@ -24,6 +24,8 @@ import time
 from pathlib import Path
 
 from kc_splatfacto.atomic import atomic_write_text
+from kc_splatfacto.cli.main import check_output_path, run_cli
+from kc_splatfacto.errors import UserError
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
@@ -60,7 +62,7 @@ def evaluate_loaded_run(loaded, split: str = "test") -> dict:
 
     dataset = loaded.test_dataset if split == "test" else loaded.train_dataset
     if dataset is None or len(dataset) == 0:
-        raise ValueError(f"kc-eval: the {split} split of {loaded.run_dir} has no images; nothing to evaluate")
+        raise UserError(f"kc-eval: the {split} split of {loaded.run_dir} has no images; nothing to evaluate")
     evaluation = evaluate_split(loaded.model, dataset)
     height, width = dataset.image_float(0).shape[:2]
     fps = evaluation.get("render_fps")
@@ -85,7 +87,7 @@ def run_eval(load_config: Path, output_path: Path | None = None, step: int | Non
 
     load_config = Path(load_config)
     if not load_config.is_file():
-        raise FileNotFoundError(f"kc-eval: --load-config {load_config} does not exist (pass a run's config.yml)")
+        raise UserError(f"kc-eval: --load-config {load_config} does not exist (pass a run's config.yml)")
     loaded = load_run(load_config, step=step, device="cpu")
     evaluation = evaluate_loaded_run(loaded, split)
     config = loaded.config
@@ -108,17 +110,19 @@ def run_eval(load_config: Path, output_path: Path | None = None, step: int | Non
 
 
 def entrypoint(argv: list[str] | None = None) -> int:
+    """``kc-eval``: user errors are one line and exit code 2 (``--debug`` shows the traceback)."""
+    return run_cli("kc-eval", main, argv)
+
+
+def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="kc-eval", description="Evaluate a trained run on its test split (ns-eval's JSON).")
     parser.add_argument("--load-config", type=Path, required=True, help="the run's config.yml")
     parser.add_argument("--output-path", type=Path, default=Path("metrics.json"), help="where to write the JSON")
     parser.add_argument("--step", type=int, default=None, help="checkpoint step (default: the latest)")
     parser.add_argument("--split", choices=("test", "train"), default="test")
     args = parser.parse_args(argv)
-    try:
-        payload = run_eval(args.load_config, args.output_path, args.step, args.split)
-    except (FileNotFoundError, ValueError) as exc:
-        print(f"kc-eval: error: {exc}", file=sys.stderr)
-        return 2
+    check_output_path(args.output_path, "--output-path")
+    payload = run_eval(args.load_config, args.output_path, args.step, args.split)
     r = payload["results"]
     lpips = "LPIPS n/a" if r["lpips"] is None else f"LPIPS({r['lpips_net']}) {r['lpips']:.4f}"
     print(

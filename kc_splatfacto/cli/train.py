@@ -8,6 +8,9 @@ Methods come from the ``kc_splatfacto.method_configs`` entry points and ``KC_SPL
     kc-train kc-splatfacto --data ../shared/data/castle-P30 --pipeline.datamanager.downscale-factor 4 \\
         --max-num-iterations 3000 --pipeline.model.steps-scale 0.1 --pipeline.model.kc-weight 1e-3
     kc-train kc-splatfacto --data demo --load-dir outputs/demo/kc-splatfacto/<timestamp>/nerfstudio_models
+
+A mistake in the input (scene, flags, checkpoint, config) prints one line ``kc-train: error: ...`` and exits 2;
+``--debug`` or ``KC_DEBUG=1`` shows its traceback. SIGTERM, like Ctrl-C, saves a checkpoint and exits 0.
 """
 
 from __future__ import annotations
@@ -41,14 +44,25 @@ def parse_config(argv: list[str]):
 
 
 def entrypoint(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
+    """``kc-train``: user errors are one line and exit code 2 (``--debug`` shows the traceback)."""
+    from kc_splatfacto.cli.main import run_cli
+
+    return run_cli("kc-train", main, argv)
+
+
+def main(argv: list[str]) -> int:
     if not argv:
         argv = ["--help"]
     config = parse_config(argv)
 
     from kc_splatfacto.engine.trainer import Trainer, TrainingDivergedError
+    from kc_splatfacto.errors import UserError
     from kc_splatfacto.model.strategy import NoGaussiansLeftError
 
+    try:
+        config.machine.resolve_device()
+    except RuntimeError as exc:  # e.g. --machine.device cuda on a machine without CUDA: the flag, not a bug
+        raise UserError(str(exc)) from exc
     trainer = Trainer(config)
     try:
         run_dir = trainer.train()

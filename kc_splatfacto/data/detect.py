@@ -1,4 +1,5 @@
-"""Which dataparser reads a scene: detection from the folder, or a registered name (``--dataparser NAME``)."""
+"""Which dataparser reads a scene: detection from the folder, or a registered name
+(``--pipeline.datamanager.dataparser-name NAME`` on the kc-train command line)."""
 
 from __future__ import annotations
 
@@ -32,7 +33,8 @@ def detect_format(data: Path) -> str:
         return "colmap"
     raise DataParserError(
         f"cannot tell the format of {data}: expected train_list.txt + test_list.txt + images/ (SPARS3R), "
-        f"transforms.json (nerfstudio), or images/ + sparse/0/ (COLMAP); or force one with --dataparser NAME"
+        f"transforms.json (nerfstudio), or images/ + sparse/0/ (COLMAP); or force a registered one with "
+        f"--pipeline.datamanager.dataparser-name NAME ({', '.join(discover_dataparsers())})"
     )
 
 

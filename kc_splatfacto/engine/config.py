@@ -138,6 +138,8 @@ class TrainerConfig:
     """resume from the newest checkpoint in this nerfstudio_models folder (or a run folder)"""
     load_step: int | None = None
     """resume from this step's checkpoint instead of the newest"""
+    resume_from_other_run: bool = False
+    """allow --load-dir of another scene's, method's or dataparser's run (continued in a new run folder)"""
     max_consecutive_bad_steps: int = 5
     """stop with an error after this many non-finite steps in a row (the last good state is saved)"""
     machine: MachineConfig = field(default_factory=MachineConfig)
@@ -181,10 +183,6 @@ def save_config(config: TrainerConfig, path: Path) -> None:
 
 def load_config(path: Path | str) -> TrainerConfig:
     """Read a ``config.yml`` written by :func:`save_config`."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"config file {path} not found: pass the config.yml of a run folder")
-    config = yaml.load(path.read_text(), Loader=yaml.Loader)
-    if not isinstance(config, TrainerConfig):
-        raise ValueError(f"{path} does not hold a kc-splatfacto TrainerConfig (found {type(config).__name__})")
-    return config
+    from kc_splatfacto.engine.config_file import read_config_file  # safe loader: only the project's configs
+
+    return read_config_file(path)

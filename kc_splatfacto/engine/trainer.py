@@ -8,7 +8,7 @@ Stiff cases: a non-finite render, loss or gradient skips the step (no update, no
 learning-rate schedule still advances so the run keeps its length); Gaussians whose parameters are non-finite are
 removed (with their optimizer state) and that step is skipped: found by the rasterizer while it reads them, and by a
 full scan every ``PARAMETER_SCAN_EVERY`` steps for values that render finitely. Each is a ``bad_step`` record. After ``max_consecutive_bad_steps`` in a row the state (still the last good
-one, since bad updates were never applied) is saved and :class:`TrainingDivergedError` raised. Ctrl-C (SIGINT) ends
+one, since bad updates were never applied) is saved and :class:`TrainingDivergedError` raised. Ctrl-C (SIGINT) or SIGTERM ends
 the current step, saves a checkpoint and returns cleanly.
 
 Resume (``load_dir``) restores the Gaussians, every optimizer and schedule, the density-control statistics, the
@@ -19,8 +19,6 @@ from __future__ import annotations
 
 import math
 import random
-import signal
-import threading
 import time
 import warnings
 from pathlib import Path
@@ -29,11 +27,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, find_checkpoint, load_checkpoint, save_checkpoint
+from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, save_checkpoint
 from kc_splatfacto.engine.config import TrainerConfig, save_config
 from kc_splatfacto.engine.evaluation import evaluate_split
 from kc_splatfacto.engine.gradient_shares import gradient_shares
 from kc_splatfacto.engine.logging import MetricsWriter, ProgressBar
+from kc_splatfacto.engine.run_guard import announce_seed_points, plan_run, store_absolute_scene_path
+from kc_splatfacto.engine.signals import install_stop_handlers, restore_handlers
 from kc_splatfacto.model import ops
 from kc_splatfacto.model.strategy import NoGaussiansLeftError
 from kc_splatfacto.render.errors import NonFiniteInputError
@@ -86,24 +86,22 @@ class Trainer:
     # ----------------------------------------------------------------------------------------------- set-up
     def setup(self) -> None:
         cfg = self.config
+        plan = plan_run(cfg, map_location=self.device)  # bad settings and foreign resumes refused before data loads
         cfg.machine.seed_everything()
         self.datamanager = cfg.pipeline.datamanager.setup(seed=cfg.machine.seed)
         cfg.pipeline.datamanager.dataparser = self.datamanager.dataparser_config  # config.yml rebuilds the run
+        store_absolute_scene_path(cfg)
         train_outputs = self.datamanager.train_outputs
         self.model = cfg.pipeline.model.setup(
             scene_scale=float(train_outputs.scene_scale),
             num_train_data=len(self.datamanager.train_dataset),
             seed_points=self.datamanager.seed_points(),
         ).to(self.device)
+        announce_seed_points(self.datamanager, cfg.pipeline.model)
         self.model.train()
         self._build_optimizers()
-        checkpoint = None
-        if cfg.load_dir is not None:
-            path = find_checkpoint(cfg.load_dir, cfg.load_step)
-            checkpoint = load_checkpoint(path, map_location=self.device)
-            self.run_dir = path.parent.parent
-        else:
-            self.run_dir = self._new_run_dir()
+        checkpoint = plan.checkpoint
+        self.run_dir = plan.run_dir or self._new_run_dir()
         self.run_dir.mkdir(parents=True, exist_ok=True)
         save_config(cfg, self.run_dir / "config.yml")
         self.datamanager.save_dataparser_transform(self.run_dir / "dataparser_transforms.json")
@@ -331,8 +329,7 @@ class Trainer:
         cfg = self.config
         self.writer = MetricsWriter(self.run_dir / "metrics.jsonl")
         self._t0 = time.perf_counter()
-        in_main_thread = threading.current_thread() is threading.main_thread()
-        previous_handler = signal.signal(signal.SIGINT, self._on_sigint) if in_main_thread else None
+        previous_handlers = install_stop_handlers(self._on_sigint)  # SIGINT and SIGTERM: save and return
         bar = ProgressBar(cfg.max_num_iterations, self.start_step, enabled=cfg.logging.progress_bar)
         step = self.start_step
         try:
@@ -362,8 +359,7 @@ class Trainer:
             bar.update(step, losses.get("loss") if losses else None, self.model.num_points, force=True)
             bar.close()
         finally:
-            if previous_handler is not None:
-                signal.signal(signal.SIGINT, previous_handler)
+            restore_handlers(previous_handlers)
             self.writer.close()
         return self.run_dir
 
