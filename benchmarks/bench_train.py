@@ -80,6 +80,7 @@ def main() -> int:
                                      args.steps_scale)
                 config.load_dir = run_dir / "nerfstudio_models"
                 config.load_step = args.warmup_steps
+                config.resume_from_other_run = True  # kc-splatfacto starts from splatfacto's warm-up, in a new folder
                 config.pipeline.model.max_num_gaussians = n_gaussians
                 trainer = Trainer(config)
                 trainer.setup()

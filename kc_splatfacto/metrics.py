@@ -5,6 +5,7 @@
 - ssim(pred, gt)            = kornia's SSIM *map* [B, C, H, W] (Gaussian window 11, sigma 1.5, reflect 'same'
                               padding, C1 = (0.01 L)^2, C2 = (0.03 L)^2)
 - mean_ssim(pred, gt, mask) = the map's mean (over the pixels where ``mask`` is set): the number reported as "SSIM"
+- lpips(pred, gt, net)      = LPIPS v0.1 ("alex" or "vgg"), images in [0, 1] (see :mod:`kc_splatfacto.lpips`)
 
 A mask is [B, 1, H, W] (bool or {0, 1} float), True/1 = the pixel counts. Masked metrics are computed on the images
 the masked losses compare (pred and gt both multiplied by the mask, see ``SplatfactoModel.get_loss_dict``); the
@@ -15,6 +16,8 @@ from __future__ import annotations
 
 import torch
 from torch import Tensor
+
+from kc_splatfacto.lpips import lpips
 
 SSIM_WINDOW = 11
 """Splatfacto / 3DGS window"""
@@ -80,3 +83,6 @@ def mean_ssim(
     if mask is not None:
         mask = _check_mask(mask, pred)
     return _masked_mean(ssim(pred, gt, window_size, max_val), mask)
+
+
+__all__ = ["lpips", "mean_ssim", "psnr", "ssim"]

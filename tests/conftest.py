@@ -33,3 +33,31 @@ def fountain_p11() -> Path:
 @pytest.fixture
 def garden_npz() -> Path:
     return shared_scene("gsplat-test-garden") / "test_garden.npz"
+
+
+def _shared_listing() -> dict[str, tuple[int, int]]:
+    """Every path under ../shared/data with its size and mtime (empty when there is no shared folder)."""
+    if not SHARED_DATA.is_dir():
+        return {}
+    return {str(p): (p.lstat().st_size, p.lstat().st_mtime_ns) for p in SHARED_DATA.rglob("*")}
+
+
+@pytest.fixture(autouse=True, scope="session")
+def shared_data_is_never_written():
+    """Nothing in the suite may write into ../shared: the shared scenes are treated as read-only whatever their
+    mount or mode bits say (derived images go to the user cache), and the folder is compared before and after."""
+    from kc_splatfacto.data import images
+
+    real = images.folder_is_writable
+    shared = SHARED_DATA.resolve()
+
+    def writable(folder: Path) -> bool:
+        return not Path(folder).resolve().is_relative_to(shared) and real(folder)
+
+    images.folder_is_writable = writable
+    before = _shared_listing()
+    yield
+    images.folder_is_writable = real
+    after = _shared_listing()
+    changed = sorted(set(before.items()) ^ set(after.items()))
+    assert not changed, f"the test suite wrote into {SHARED_DATA}: {changed[:10]}"

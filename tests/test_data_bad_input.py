@@ -1,5 +1,7 @@
 """Bad scene input: each case is a clear DataParserError naming the file or argument and the fix."""
 
+import re
+
 import cv2
 import numpy as np
 import pytest
@@ -29,8 +31,14 @@ def test_missing_scene_folder(tmp_path):
 
 def test_folder_of_unknown_format_says_what_was_expected(tmp_path):
     (tmp_path / "images").mkdir()
-    with pytest.raises(DataParserError, match="cannot tell the format.*subcommand"):
+    with pytest.raises(DataParserError, match="cannot tell the format.*subcommand") as caught:
         resolve_dataparser(tmp_path)
+    # the hint's command is one kc-train really parses, and its subcommand really forces the parser
+    command = re.search(r"`kc-train ([^`]*)`", str(caught.value)).group(1).split()
+    from kc_splatfacto.cli.train import parse_config
+
+    config = parse_config([str(tmp_path) if word == "SCENE" else word for word in command])
+    assert type(config.pipeline.datamanager.dataparser).__name__ == "ColmapDataParserConfig"
 
 
 def test_missing_model(castle_p30, tmp_path):

@@ -1,5 +1,7 @@
 """COLMAP parser on fountain-P11 (real data): eval modes, camera models, undistortion against OpenCV's projection."""
 
+import shutil
+
 import cv2
 import numpy as np
 import pytest
@@ -156,18 +158,72 @@ def test_unsupported_camera_model_is_named(fountain_p11, tmp_path):
         ColmapDataParserConfig(data=scene).setup().get_dataparser_outputs("train")
 
 
+def visible(folder):
+    """Entries of ``folder`` without the hidden ones (the ``.sources`` records of derived images)."""
+    return sorted(p.name for p in folder.iterdir() if not p.name.startswith("."))
+
+
+def read_only_copy(src, dst):
+    """A copy of a scene whose folders are read-only by their mode bits (what ``folder_is_writable`` checks, so the
+    test does not depend on how ../shared is mounted or on running as root)."""
+    shutil.copytree(src, dst)
+    for folder in [dst, *[p for p in dst.rglob("*") if p.is_dir()]]:
+        folder.chmod(0o555)
+    return dst
+
+
 def test_downscale_cache_is_reused_and_written_outside_read_only_scenes(fountain_p11, tmp_path, monkeypatch):
     monkeypatch.setenv("KC_SPLATFACTO_CACHE", str(tmp_path / "user_cache"))
-    config = ColmapDataParserConfig(data=fountain_p11, downscale_factor=4)
-    outputs = config.setup().get_dataparser_outputs("test")  # 2 images only: the split's
-    for path in outputs.image_filenames:
-        assert path.is_relative_to(tmp_path / "user_cache")  # shared scene is read-only: user cache used
-        assert path.parent.name == "images_4"
-    assert len(list(outputs.image_filenames[0].parent.iterdir())) == 2
-    assert (int(outputs.cameras.widths[0]), int(outputs.cameras.heights[0])) == (192, 128)
-    assert torch.allclose(outputs.cameras.Ks[0, 0, 0], torch.tensor(FOUNTAIN_K[0] / 4))
-    assert read_image(outputs.image_filenames[0]).shape == (128, 192, 3)
-    assert not list(outputs.image_filenames[0].parent.glob(".*.tmp"))  # atomic writes leave no temp files
+    scene = read_only_copy(fountain_p11, tmp_path / "scene")
+    before = sorted(str(p) for p in scene.rglob("*"))
+    try:
+        config = ColmapDataParserConfig(data=scene, downscale_factor=4)
+        outputs = config.setup().get_dataparser_outputs("test")  # 2 images only: the split's
+        for path in outputs.image_filenames:
+            assert path.is_relative_to(tmp_path / "user_cache")  # the scene is read-only: user cache used
+            assert path.parent.name == "images_4"
+        assert visible(outputs.image_filenames[0].parent) == ["0000.jpg", "0008.jpg"]
+        assert (int(outputs.cameras.widths[0]), int(outputs.cameras.heights[0])) == (192, 128)
+        assert torch.allclose(outputs.cameras.Ks[0, 0, 0], torch.tensor(FOUNTAIN_K[0] / 4))
+        assert read_image(outputs.image_filenames[0]).shape == (128, 192, 3)
+        assert not list(outputs.image_filenames[0].parent.rglob("*.tmp"))  # atomic writes leave no temp files
+        mtime = outputs.image_filenames[0].stat().st_mtime_ns
+        config.setup().get_dataparser_outputs("test")
+        assert outputs.image_filenames[0].stat().st_mtime_ns == mtime  # reused, not rewritten
+        assert sorted(str(p) for p in scene.rglob("*")) == before  # nothing written into the scene
+    finally:
+        for folder in [scene, *[p for p in scene.rglob("*") if p.is_dir()]]:
+            folder.chmod(0o755)
+
+
+def test_downscaled_copy_is_rebuilt_when_its_source_changes(fountain_p11, tmp_path):
+    """images_N/ entries are keyed on the source's size and mtime: an edited source image is resized again."""
+    scene = scene_variant(fountain_p11, tmp_path / "scene", with_lists=False)
+    config = ColmapDataParserConfig(data=scene, downscale_factor=2)
+    first = config.setup().get_dataparser_outputs("test").image_filenames[0]
+    source = scene / "images" / "0000.jpg"
+    original = read_image(source)
+    flipped = np.ascontiguousarray(original[::-1])  # same size, different content
+    cv2.imwrite(str(source), cv2.cvtColor(flipped, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 98])
+    again = config.setup().get_dataparser_outputs("test").image_filenames[0]
+    assert again == first
+    size = (original.shape[1] // 2, original.shape[0] // 2)
+    new_expected = cv2.resize(read_image(source), size, interpolation=cv2.INTER_AREA).astype(np.float64)
+    old_expected = cv2.resize(original, size, interpolation=cv2.INTER_AREA).astype(np.float64)
+    got = read_image(again).astype(np.float64)
+    # the copy is a JPEG (quality 95): within JPEG error of the new source, far from the old one
+    assert np.abs(got - new_expected).mean() < 2.0 < 10 * 2.0 < np.abs(got - old_expected).mean()
+
+
+def test_downscale_that_leaves_no_pixels_is_refused_before_anything_is_written(fountain_p11, tmp_path):
+    """Checked up front: not after the distorted images were already undistorted into the cache."""
+    line = camera_line("OPENCV", [*FOUNTAIN_K, -0.05, 0.01, 0.0, 0.0])
+    scene = scene_variant(fountain_p11, tmp_path / "scene", with_lists=False, cameras_txt=line)
+    before = sorted(p.name for p in scene.iterdir())
+    config = ColmapDataParserConfig(data=scene, downscale_factor=1000)  # 768x512 images
+    with pytest.raises(DataParserError, match="downscale_factor 1000 is too large"):
+        config.setup().get_dataparser_outputs("train")
+    assert sorted(p.name for p in scene.iterdir()) == before  # no images_undistorted_*/, no images_1000/
 
 
 def nerfstudio_colmap_reference(world_to_cameras):
@@ -242,8 +298,8 @@ def test_downscale_into_a_writable_scene_folder_split_by_split(fountain_p11, tmp
     config = ColmapDataParserConfig(data=scene, downscale_factor=2)
     test = config.setup().get_dataparser_outputs("test")
     assert [p.parent for p in test.image_filenames] == [scene / "images_2"] * 2
-    assert sorted(p.name for p in (scene / "images_2").iterdir()) == ["0000.jpg", "0008.jpg"]
+    assert visible(scene / "images_2") == ["0000.jpg", "0008.jpg"]
     train = config.setup().get_dataparser_outputs("train")
-    assert len(list((scene / "images_2").iterdir())) == 11
+    assert len(visible(scene / "images_2")) == 11
     assert all(p.parent == scene / "images_2" for p in train.image_filenames)
     assert read_image(train.image_filenames[0]).shape == (256, 384, 3)

@@ -2,6 +2,7 @@
 nerfstudio's normalization and the dataparser_transforms.json file."""
 
 import json
+import shutil
 import warnings
 from pathlib import Path
 
@@ -42,7 +43,10 @@ def write_transforms(folder, outputs_list, extra=None, per_frame=False):
             outputs.cameras.widths.tolist(),
             outputs.cameras.heights.tolist(),
         ):
-            frame = {"file_path": str(path), "transform_matrix": c2w.tolist()}
+            # images copied in (names relative to the json: absolute ones and symlinks out are refused)
+            (folder / "images").mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(path, folder / "images" / Path(path).name)
+            frame = {"file_path": f"images/{Path(path).name}", "transform_matrix": c2w.tolist()}
             intrinsics = {"fl_x": K[0, 0], "fl_y": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "w": w, "h": h}
             (frame if per_frame else meta).update(intrinsics)
             frames.append(frame)
@@ -57,8 +61,8 @@ def write_transforms(folder, outputs_list, extra=None, per_frame=False):
 def test_castle_cameras_written_as_transforms_json_parse_back(castle_p30, tmp_path, per_frame):
     train, test = castle_outputs(castle_p30)
     split = {
-        "train_filenames": [str(p) for p in train.image_filenames],
-        "test_filenames": [str(p) for p in test.image_filenames],
+        "train_filenames": [f"images/{p.name}" for p in train.image_filenames],
+        "test_filenames": [f"images/{p.name}" for p in test.image_filenames],
     }
     scene = write_transforms(tmp_path / "ns", [train, test], split, per_frame=per_frame)
     config = resolve_dataparser(scene)
@@ -66,7 +70,7 @@ def test_castle_cameras_written_as_transforms_json_parse_back(castle_p30, tmp_pa
     parser = config.setup()
     for original, split_name in ((train, "train"), (test, "test"), (test, "val")):
         parsed = parser.get_dataparser_outputs(split_name)
-        assert parsed.image_filenames == original.image_filenames
+        assert parsed.image_filenames == [scene / "images" / p.name for p in original.image_filenames]
         # already normalized poses are a fixed point of the normalization: same cameras
         assert torch.allclose(parsed.cameras.viewmats, original.cameras.viewmats, atol=1e-5)
         assert torch.allclose(parsed.cameras.Ks, original.cameras.Ks, atol=1e-5)

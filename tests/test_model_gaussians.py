@@ -80,7 +80,7 @@ def test_exponential_decay_schedule():
 
 def test_optimizer_groups_have_splatfacto_rates():
     params = init_gaussian_params(torch.rand(10, 3), None)
-    optimizers, schedulers = OptimizersConfig().setup(params, max_steps=100)
+    optimizers, schedulers = OptimizersConfig().setup(params, steps_scale=100 / 30000)
     rates = {k: opt.param_groups[0]["lr"] for k, opt in optimizers.items()}
     assert rates == {"means": 1.6e-4, "features_dc": 0.0025, "features_rest": 0.0025 / 20, "opacities": 0.05,
                      "scales": 0.005, "quats": 0.001}

@@ -8,20 +8,26 @@ import pytest
 import torch
 
 from kc_splatfacto.render import tiles
+from kc_splatfacto.render import tiles as tiles_module
 from kc_splatfacto.render.tiles import isect_offset_encode, isect_tiles, tile_grid
 
 
-@pytest.fixture(params=["counting_sort", "key_sort"])
+@pytest.fixture(params=["compiled", "key_sort"])
 def binning(request, monkeypatch):
-    """Both binning routes: numba counting sort (CPU default) and the vectorized key sort (other devices)."""
+    """Both binning routes: the compiled radix + counting sort (CPU default) and the vectorized key sort (other
+    devices)."""
     if request.param == "key_sort":
-        monkeypatch.setattr(
-            tiles,
-            "_bin_counting_sort",
-            lambda depths, visible, tmin, tmax, counts, tw, th: tiles._bin_sort_keys(
-                depths, tmin, (tmax - tmin).clamp(min=0), counts, tw, th, True
-            ),
-        )
+
+        def key_sort(means2d, radii, depths, tile_size, tw, th):
+            tmin, tmax = tiles.tile_bounds(means2d, radii, tile_size, tw, th)
+            visible = (radii[..., 0] > 0) & (radii[..., 1] > 0)
+            span = (tmax - tmin).clamp(min=0)
+            counts = torch.where(visible, span[..., 0] * span[..., 1], torch.zeros_like(span[..., 0]))
+            isect_ids, flatten_ids = tiles._bin_sort_keys(depths, tmin, span, counts, tw, th, True)
+            offsets = isect_offset_encode(isect_ids, depths.shape[0], tw, th)
+            return counts.to(torch.int32), isect_ids, flatten_ids.to(torch.int32), offsets
+
+        monkeypatch.setattr(tiles, "bin_tiles_cpu", key_sort)
     return request.param
 
 
@@ -90,6 +96,9 @@ def test_isect_tiles_equal_bruteforce(width, height, tile_size, binning):
             # first intersection at or after (c, t): where the run of this tile starts (or the next one does)
             first = next((k for k, key in enumerate(keys) if key >= (c, t)), len(keys))
             assert offsets[c, t // tile_width, t % tile_width] == first
+    # the one-pass CPU binning returns the same offsets with the intersections
+    fused = tiles_module.bin_tiles_cpu(means2d, radii, depths, tile_size, tile_width, tile_height)
+    assert torch.equal(fused[1], isect_ids) and torch.equal(fused[2], flatten_ids) and torch.equal(fused[3], offsets)
 
 
 def test_empty_intersections_give_zero_offsets(binning):

@@ -133,7 +133,15 @@ def test_bench_two_methods_one_seed_demo(tmp_path):
     table = (out / "results.md").read_text()
     assert "splatfacto (baseline)" in table and "| kc-splatfacto |" in table
     assert (out / "command.txt").read_text().startswith("kc-bench --data demo")
-    assert not (out / "lpips_vs_time.png").exists()
+    from kc_splatfacto.lpips import lpips_available
+
+    if lpips_available("alex") is None:  # LPIPS weights installed (make install): a real LPIPS column and plot
+        assert all(r["lpips"] is not None and 0 < r["lpips"] < 1 and r["lpips_net"] == "alex" for r in rows)
+        assert "LPIPS (alex) ↓" in table
+        image = cv2.imread(str(out / "lpips_vs_time.png"), cv2.IMREAD_COLOR)
+        assert image is not None and image.std() > 0
+    else:
+        assert not (out / "lpips_vs_time.png").exists()
     gap = cv2.imread(str(out / "kurtosis_gap_demo.png"), cv2.IMREAD_COLOR)  # kurtosis is logged at step 10
     assert gap is not None and gap.std() > 0
 
@@ -146,8 +154,20 @@ def test_log_spaced_steps():
     ratios = np.diff(np.log(steps))
     assert ratios.max() / ratios.min() < 1.2  # geometric spacing
     assert bench.log_spaced_steps(3, 10) == (1, 2, 3)
+    assert bench.evaluation_steps(30000, 3, [7000]) == (1, 173, 7000, 30000)  # geomspace(1, 30000, 3): 173.2
+    with pytest.raises(ValueError, match="eval-at-steps"):
+        bench.evaluation_steps(1000, 3, [7000])
     with pytest.raises(ValueError):
         bench.log_spaced_steps(0, 3)
+
+
+def test_mean_interval_against_printed_t_values():
+    # t_{0.975, 1} = 12.706205, t_{0.975, 4} = 2.776445 (printed t tables)
+    assert report.mean_interval([1.0, 3.0]) == pytest.approx((2 - 12.706205, 2 + 12.706205), rel=1e-6)
+    values = [0.5, -0.2, 0.1, 0.4, 0.7]
+    half = 2.776445 * np.std(values, ddof=1) / np.sqrt(5)
+    assert report.mean_interval(values) == pytest.approx((np.mean(values) - half, np.mean(values) + half), rel=1e-6)
+    assert report.mean_interval([0.3]) is None and report.mean_interval([]) is None
 
 
 def test_paired_deltas_match_numpy(tmp_path):
@@ -159,8 +179,12 @@ def test_paired_deltas_match_numpy(tmp_path):
     np.testing.assert_allclose(entry["psnr_db"], psnr, rtol=1e-12)
     np.testing.assert_allclose(entry["ssim_pct"], ssim, rtol=1e-9)
     assert entry["psnr_db_mean"] == pytest.approx(np.mean(psnr), rel=1e-12)
-    assert entry["lpips_pct_mean"] is None
+    assert entry["lpips_pct_mean"] is None and entry["lpips_pct_interval"] is None
+    # 95 % t interval over 3 seeds: t_{0.975, 2} = 4.302653 (printed t tables), sample std
+    half = 4.302653 * np.std(psnr, ddof=1) / np.sqrt(3)
+    assert entry["psnr_db_interval"] == pytest.approx((np.mean(psnr) - half, np.mean(psnr) + half), rel=1e-6)
     table = report.markdown_paired_table([entry], "splatfacto")
+    assert f"[{np.mean(psnr) - half:+.2f}, {np.mean(psnr) + half:+.2f}]" in table
     assert f"{np.mean(psnr):+.2f}" in table and f"{psnr[1]:+.2f}" in table
     paths = report.write_report(rows, tmp_path / "out", baseline="splatfacto")
     assert "Per-seed differences" in paths["table"].read_text()

@@ -6,7 +6,9 @@ Input: the evaluation records every run writes (``{"kind": "eval", "step", "elap
 - per metric, a PNG of the metric against training seconds, one curve per method (mean over seeds, shaded min-max
   spread over seeds), one panel per scene,
 - a markdown table of the final evaluation of every method with the paper's kind of relative deltas against a
-  baseline method (dB for PSNR, % for SSIM and LPIPS, x for time).
+  baseline method (dB for PSNR, % for SSIM and LPIPS, x for time),
+- per scene, the gradient shares of the loss terms against step (:func:`plot_gradient_shares`; a term whose share
+  stays far below 1 % does next to nothing at its weight).
 
 Time axis: ``train_s`` (seconds spent in training steps, evaluation excluded) by default, so methods are compared
 on what their training costs, not on how often they were evaluated.
@@ -29,8 +31,13 @@ from kc_splatfacto.analysis.figures import pyplot, save_figure
 METRICS = {"psnr": "higher", "ssim": "higher", "lpips": "lower"}
 METRIC_LABELS = {"psnr": "PSNR (dB)", "ssim": "SSIM", "lpips": "LPIPS"}
 #: Columns of the flat evaluation table, in order.
-EVAL_COLUMNS = ("scene", "method", "seed", "step", "elapsed_s", "train_s", "psnr", "ssim", "lpips", "num_images", "run_dir")
+EVAL_COLUMNS = (
+    "scene", "method", "seed", "step", "elapsed_s", "train_s", "psnr", "ssim", "lpips", "lpips_net", "num_images",
+    "run_dir",
+)
 DEFAULT_TIME_KEY = "train_s"
+INTERVAL_LEVEL = 0.95
+"""two-sided confidence level of the interval on a mean paired difference (Student t over seeds)"""
 
 
 def _number(value) -> float | None:
@@ -41,7 +48,7 @@ def _number(value) -> float | None:
 
 
 def eval_rows(records: Iterable[dict], scene: str, method: str, seed: int, run_dir: str | Path = "") -> list[dict]:
-    """The evaluation records of one run as flat rows (:data:`EVAL_COLUMNS`), sorted by step."""
+    """The evaluation records of one run as flat rows (:data:`EVAL_COLUMNS`), sorted by step, one per step."""
     rows = []
     for record in records:
         if record.get("kind") != "eval":
@@ -60,10 +67,13 @@ def eval_rows(records: Iterable[dict], scene: str, method: str, seed: int, run_d
                 "psnr": _number(record.get("psnr")),
                 "ssim": _number(record.get("ssim")),
                 "lpips": _number(record.get("lpips")),
+                "lpips_net": record.get("lpips_net") if record.get("lpips") is not None else None,
                 "num_images": record.get("num_images"),
                 "run_dir": str(run_dir),
             }
         )
+    # one row per step: a log continued after an interruption may repeat a step; the later record wins
+    rows = list({row["step"]: row for row in rows}.values())
     rows.sort(key=lambda row: row["step"])
     return rows
 
@@ -90,6 +100,7 @@ def read_rows_csv(path: str | Path) -> list[dict]:
             for key in ("elapsed_s", "train_s", "psnr", "ssim", "lpips"):
                 row[key] = float(row[key]) if row[key] not in ("", None) else None
             row["num_images"] = int(row["num_images"]) if row.get("num_images") not in ("", None) else None
+            row["lpips_net"] = row.get("lpips_net") or None
             rows.append(row)
     return rows
 
@@ -182,12 +193,26 @@ def plot_metric_vs_time(
         ) > 20:
             ax.set_xscale("log")
         ax.set_xlabel("training time (s, evaluation excluded)" if time_key == "train_s" else "wall-clock time (s)")
-        ax.set_ylabel(METRIC_LABELS.get(metric, metric))
-        ax.set_title(f"{scene}: {METRIC_LABELS.get(metric, metric)} vs time (mean, min-max over seeds)", fontsize=9)
+        label = metric_label(metric, rows)
+        ax.set_ylabel(label)
+        ax.set_title(f"{scene}: {label} vs time (mean, min-max over seeds)", fontsize=9)
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=8)
     path = save_figure(fig, path, dpi=120)
     return curves
+
+
+def lpips_networks(rows: Sequence[dict]) -> list[str]:
+    """The LPIPS backbones the rows' values were measured with (normally one, 'alex')."""
+    return sorted({row["lpips_net"] for row in rows if row.get("lpips") is not None and row.get("lpips_net")})
+
+
+def metric_label(metric: str, rows: Sequence[dict] = ()) -> str:
+    """Axis/table label; LPIPS names its network (``LPIPS (alex)``)."""
+    label = METRIC_LABELS.get(metric, metric)
+    if metric == "lpips" and lpips_networks(rows):
+        label = f"{label} ({', '.join(lpips_networks(rows))})"
+    return label
 
 
 def final_rows(rows: Sequence[dict]) -> list[dict]:
@@ -253,10 +278,12 @@ def _signed(value: float | None, digits: int, unit: str) -> str:
     return "" if value is None else f" ({value:+.{digits}f}{unit})"
 
 
-def markdown_table(summary: Sequence[dict], baseline: str | None = None, lpips_note: str | None = None) -> str:
+def markdown_table(
+    summary: Sequence[dict], baseline: str | None = None, lpips_note: str | None = None, lpips_label: str = "LPIPS"
+) -> str:
     """Markdown table of the final metrics (mean ± std over seeds), deltas vs ``baseline`` in parentheses."""
     lines = [
-        "| scene | method | seeds | step | PSNR (dB) ↑ | SSIM ↑ | LPIPS ↓ | train time (s) |",
+        f"| scene | method | seeds | step | PSNR (dB) ↑ | SSIM ↑ | {lpips_label} ↓ | train time (s) |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for e in summary:
@@ -279,12 +306,25 @@ def markdown_table(summary: Sequence[dict], baseline: str | None = None, lpips_n
     return "\n".join(lines + notes) + "\n"
 
 
+def mean_interval(values: Sequence[float], level: float = INTERVAL_LEVEL) -> tuple[float, float] | None:
+    """Student-t interval on the mean of ``values`` (paired differences over seeds): mean -/+ t_{(1+level)/2, n-1}
+    s / sqrt(n), s the sample std (ddof 1). None for fewer than two values."""
+    from scipy.stats import t as student_t
+
+    values = np.asarray([v for v in values if v is not None], dtype=np.float64)
+    if values.size < 2:
+        return None
+    half = float(student_t.ppf((1 + level) / 2, values.size - 1) * values.std(ddof=1) / np.sqrt(values.size))
+    return float(values.mean() - half), float(values.mean() + half)
+
+
 def paired_deltas(rows: Sequence[dict], baseline: str) -> list[dict]:
     """Per (scene, method), the final-metric differences to ``baseline`` run with the same seed.
 
     Runs that share a seed share the initial Gaussians and the image order, so pairing removes the seed-to-seed
     variation that dominates short runs. Returns ``seeds``, ``psnr_db`` (per-seed differences, dB), ``ssim_pct``
-    and ``lpips_pct`` (relative, %; None where unavailable), with their ``_mean``.
+    and ``lpips_pct`` (relative, %; None where unavailable), with their ``_mean`` and ``_interval`` (95 % Student t
+    interval of the mean over seeds, None with fewer than two seeds: :func:`mean_interval`).
     """
     finals = {(r["scene"], r["method"], r["seed"]): r for r in final_rows(rows)}
     out = []
@@ -301,6 +341,7 @@ def paired_deltas(rows: Sequence[dict], baseline: str) -> list[dict]:
             entry[key] = values
             present = [v for v in values if v is not None]
             entry[f"{key}_mean"] = float(np.mean(present)) if present else None
+            entry[f"{key}_interval"] = mean_interval(present)
         out.append(entry)
     return out
 
@@ -310,22 +351,27 @@ def markdown_paired_table(paired: Sequence[dict], baseline: str) -> str:
     if not paired:
         return ""
 
-    def cells(values: list, mean: float | None, digits: int) -> str:
+    def cells(values: list, mean: float | None, digits: int, interval: tuple[float, float] | None = None) -> str:
         if mean is None:
             return "n/a | n/a"
-        return " / ".join(f"{v:+.{digits}f}" for v in values) + f" | {mean:+.{digits}f}"
+        ci = f" [{interval[0]:+.{digits}f}, {interval[1]:+.{digits}f}]" if interval is not None else ""
+        return " / ".join(f"{v:+.{digits}f}" for v in values) + f" | {mean:+.{digits}f}{ci}"
 
     lines = [
-        f"Per-seed differences to `{baseline}` at the same seed (final evaluation):",
+        f"Per-seed differences to `{baseline}` at the same seed (final evaluation); mean with its "
+        f"{100 * INTERVAL_LEVEL:.0f} % Student t interval over seeds in brackets:",
         "",
-        "| scene | method | seeds | ΔPSNR per seed (dB) | mean | ΔSSIM per seed (%) | mean |",
-        "|---|---|---|---|---|---|---|",
+        "| scene | method | seeds | ΔPSNR per seed (dB) | mean [CI] | ΔSSIM per seed (%) | mean [CI] "
+        "| ΔLPIPS per seed (%) | mean [CI] |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for e in paired:
         seeds = " / ".join(str(s) for s in e["seeds"])
         lines.append(
-            f"| {e['scene']} | {e['method']} | {seeds} | {cells(e['psnr_db'], e['psnr_db_mean'], 2)} | "
-            f"{cells(e['ssim_pct'], e['ssim_pct_mean'], 2)} |"
+            f"| {e['scene']} | {e['method']} | {seeds} | "
+            f"{cells(e['psnr_db'], e['psnr_db_mean'], 2, e.get('psnr_db_interval'))} | "
+            f"{cells(e['ssim_pct'], e['ssim_pct_mean'], 2, e.get('ssim_pct_interval'))} | "
+            f"{cells(e['lpips_pct'], e['lpips_pct_mean'], 2, e.get('lpips_pct_interval'))} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -350,7 +396,7 @@ def write_report(
     paths["summary"] = out_dir / "summary.json"
     paths["summary"].write_text(json.dumps(summary, indent=1))
     paths["table"] = out_dir / "results.md"
-    table = markdown_table(summary, baseline, lpips_note)
+    table = markdown_table(summary, baseline, lpips_note, lpips_label=metric_label("lpips", rows))
     if baseline:
         paired = markdown_paired_table(paired_deltas(rows, baseline), baseline)
         table += ("\n" + paired) if paired else ""
@@ -360,3 +406,42 @@ def write_report(
         if plot_metric_vs_time(rows, metric, png, time_key, baseline):
             paths[f"plot_{metric}"] = png
     return paths
+
+
+def gradient_share_series(records: Iterable[dict]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """From one run's ``metrics.jsonl`` records: per loss term, (steps [T], share of the photometric term [T])."""
+    series: dict[str, tuple[list, list]] = {}
+    for record in records:
+        if record.get("kind") != "gradient_shares":
+            continue
+        for term, share in (record.get("share") or {}).items():
+            steps, values = series.setdefault(term, ([], []))
+            steps.append(int(record["step"]))
+            values.append(np.nan if share is None else float(share))
+    return {term: (np.array(steps), np.array(values)) for term, (steps, values) in series.items()}
+
+
+def plot_gradient_shares(records_by_label: dict[str, Sequence[dict]], path: str | Path, title: str = "") -> Path | None:
+    """PNG of each loss term's image-gradient norm relative to the photometric term's, against step (log y), one
+    panel per run label (e.g. method). Returns None (no file) when no run logged ``gradient_shares`` records."""
+    panels = {label: gradient_share_series(records) for label, records in records_by_label.items()}
+    panels = {label: series for label, series in panels.items() if any(t != "main_loss" for t in series)}
+    if not panels:
+        return None
+    plt = pyplot()
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4.0), squeeze=False)
+    for ax, (label, series) in zip(axes[0], panels.items()):
+        for term, (steps, shares) in series.items():
+            if term == "main_loss":
+                continue
+            positive = np.where(shares > 0, shares, np.nan)  # a zero share cannot be drawn on a log axis
+            zeros = int((shares == 0).sum())
+            ax.plot(steps, 100 * positive, "-o", ms=3, label=term + (f" (exactly 0 at {zeros} steps)" if zeros else ""))
+        ax.axhline(100, color="black", lw=0.8, ls="--", label="main_loss (= 100 %)")
+        ax.set_yscale("log")
+        ax.set_xlabel("step")
+        ax.set_ylabel("||d term / d image|| / ||d main_loss / d image|| (%)")
+        ax.set_title(f"{title + ': ' if title else ''}{label}", fontsize=9)
+        ax.grid(True, alpha=0.3, which="both")
+        ax.legend(fontsize=8)
+    return save_figure(fig, path, dpi=120)

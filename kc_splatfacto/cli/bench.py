@@ -5,8 +5,14 @@ log-spaced steps (``eval_at_steps``); the report (:mod:`kc_splatfacto.analysis.r
 ``--output-dir``: ``evals.csv`` / ``evals.json`` (every evaluation), ``summary.json``, ``results.md`` (final metrics
 with deltas vs the baseline, also per seed), ``<metric>_vs_time.png``, ``kurtosis_gap_<scene>.png`` (the render-vs-GT
 band-kurtosis gap over training) and ``command.txt`` (the exact command line). The report is
-rewritten after every finished run, so an interrupted benchmark still leaves the runs it finished; ``--resume`` skips
-runs whose folder already holds a final evaluation.
+rewritten after every finished run, so an interrupted benchmark still leaves the runs it finished.
+
+``--resume`` continues a stopped study where it stopped, with the same command line plus ``--resume``: a run whose
+folder already holds its final evaluation is reused as it is; an interrupted run (its folder holds a checkpoint,
+written every ``--steps-per-save`` steps) continues from its last checkpoint in the same folder, its
+``metrics.jsonl`` first cut back to that step so that nothing is logged twice; an interrupted run without a
+checkpoint starts again (its old log kept as ``metrics.interrupted.jsonl``). A run folder whose ``config.yml`` holds
+another model config or seed than the command asks for is an error, not silently mixed in.
 
 Example (the committed castle-P30 result)::
 
@@ -29,8 +35,13 @@ from typing import Any, Sequence
 
 import numpy as np
 
-#: Splatfacto's schedule length; ``--steps-scale auto`` compresses every step-based schedule to the budget.
-SPLATFACTO_SCHEDULE_STEPS = 30000
+from kc_splatfacto.engine.optimizers import SPLATFACTO_SCHEDULE_STEPS  # ``--steps-scale auto``: budget / this
+from kc_splatfacto.errors import UserError
+
+
+class BenchArgumentError(UserError, ValueError):
+    """A kc-bench argument that cannot work (a budget below 1, a bad --set, an unknown method)."""
+
 DEFAULT_METHODS = ("splatfacto", "kc-splatfacto")
 DEFAULT_BASELINE = "splatfacto"
 
@@ -38,11 +49,19 @@ DEFAULT_BASELINE = "splatfacto"
 def log_spaced_steps(max_steps: int, num: int) -> tuple[int, ...]:
     """About ``num`` distinct steps in [1, max_steps], geometrically spaced, always ending at ``max_steps``."""
     if max_steps < 1:
-        raise ValueError(f"max_steps must be >= 1, got {max_steps}")
+        raise BenchArgumentError(f"max_steps must be >= 1, got {max_steps}")
     if num < 1:
-        raise ValueError(f"the number of evaluations must be >= 1, got {num}")
+        raise BenchArgumentError(f"the number of evaluations must be >= 1, got {num}")
     steps = np.unique(np.round(np.geomspace(1, max_steps, num)).astype(int))
     return tuple(int(s) for s in sorted(set(steps.tolist()) | {max_steps}))
+
+
+def evaluation_steps(max_steps: int, num: int, extra: Sequence[int] = ()) -> tuple[int, ...]:
+    """:func:`log_spaced_steps` plus the ``extra`` steps (e.g. 7000 in a 30000-step run); each in [1, max_steps]."""
+    outside = [s for s in extra if not 1 <= s <= max_steps]
+    if outside:
+        raise BenchArgumentError(f"--eval-at-steps {outside}: evaluation steps must lie in [1, --max-num-iterations={max_steps}]")
+    return tuple(sorted(set(log_spaced_steps(max_steps, num)) | {int(s) for s in extra}))
 
 
 def apply_override(config: Any, assignment: str) -> Any:
@@ -53,12 +72,12 @@ def apply_override(config: Any, assignment: str) -> Any:
 
     key, sep, value = assignment.partition("=")
     if not sep or not key.strip():
-        raise ValueError(f"--set '{assignment}': expected dotted.field=value")
+        raise BenchArgumentError(f"--set '{assignment}': expected dotted.field=value")
     flag = "--" + key.strip().replace("_", "-")
     try:
         return override_config(config, [flag, *value.split()])
     except SystemExit as exc:  # tyro printed why (unknown field, wrong type, not a choice)
-        raise ValueError(f"--set '{assignment}': not a valid override of the {config.method_name} config") from exc
+        raise BenchArgumentError(f"--set '{assignment}': not a valid override of the {config.method_name} config") from exc
 
 
 def build_run_config(
@@ -102,6 +121,56 @@ def build_run_config(
     return config
 
 
+def resume_point(run_dir: Path, config: Any) -> Path | None:
+    """Prepare an interrupted run folder for ``--resume``: the checkpoint to continue from, or None (start again).
+
+    The folder's ``config.yml`` must describe the same model and seed as ``config`` (else ValueError). Records logged
+    after the checkpoint's step are cut from ``metrics.jsonl`` (atomically), since the resumed run logs them again;
+    without a checkpoint the log is moved aside to ``metrics.interrupted.jsonl`` and the run starts from scratch.
+    """
+    import dataclasses
+
+    from kc_splatfacto.atomic import atomic_write_text
+    from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, CHECKPOINT_PATTERN, list_checkpoints
+    from kc_splatfacto.engine.config import load_config
+
+    saved_path = run_dir / "config.yml"
+    if saved_path.is_file():
+        saved = load_config(saved_path)
+        mismatch = [
+            name for name, a, b in (
+                ("pipeline.model", dataclasses.asdict(saved.pipeline.model), dataclasses.asdict(config.pipeline.model)),
+                ("machine.seed", saved.machine.seed, config.machine.seed),
+                ("optimizers", dataclasses.asdict(saved.optimizers), dataclasses.asdict(config.optimizers)),
+            ) if a != b
+        ]
+        if mismatch:
+            raise BenchArgumentError(
+                f"--resume: {run_dir} was trained with another {', '.join(mismatch)} than this command asks for; "
+                f"rerun with the original command, or pass another --runs-dir"
+            )
+    log = run_dir / "metrics.jsonl"
+    checkpoints = list_checkpoints(run_dir / CHECKPOINT_DIR)
+    if not checkpoints:
+        if log.is_file():
+            log.replace(run_dir / "metrics.interrupted.jsonl")
+        return None
+    step = int(CHECKPOINT_PATTERN.match(checkpoints[-1].name).group(1))
+    if log.is_file():
+        kept = []
+        for line in log.read_text().splitlines():
+            if not line.strip():
+                continue
+            try:
+                record = json.loads(line)
+            except json.JSONDecodeError:  # a line cut by the interruption
+                continue
+            if int(record.get("step", 0)) <= step:
+                kept.append(line)
+        atomic_write_text(log, "".join(line + "\n" for line in kept))
+    return checkpoints[-1].parent
+
+
 def _finished(run_dir: Path, max_steps: int) -> bool:
     from kc_splatfacto.engine.metrics_log import read_metrics
 
@@ -124,12 +193,12 @@ def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
     methods_available = discover_methods()
     unknown = [m for m in args.methods if m not in methods_available]
     if unknown:
-        raise ValueError(f"unknown method(s) {unknown}; registered: {', '.join(methods_available) or 'none'}")
+        raise BenchArgumentError(f"unknown method(s) {unknown}; registered: {', '.join(methods_available) or 'none'}")
     out_dir = Path(args.output_dir)
     runs_dir = Path(args.runs_dir) if args.runs_dir else out_dir / "runs"
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "command.txt").write_text("kc-bench " + " ".join(shlex.quote(a) for a in argv) + "\n")
-    eval_steps = log_spaced_steps(args.max_num_iterations, args.num_evals)
+    eval_steps = evaluation_steps(args.max_num_iterations, args.num_evals, args.eval_at_steps)
     if args.steps_scale == "auto":
         steps_scale = args.max_num_iterations / SPLATFACTO_SCHEDULE_STEPS
     elif args.steps_scale == "none":
@@ -151,12 +220,17 @@ def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
                     experiment=scene, downscale_factor=args.downscale_factor, steps_scale=steps_scale,
                     device=args.device, overrides=args.set,
                 )
+                config.steps_per_save = args.steps_per_save if args.steps_per_save > 0 else args.max_num_iterations
                 expected_dir = Path(runs_dir) / scene / method / f"seed{seed}"
                 start = time.perf_counter()
+                status = "trained"
                 if args.resume and _finished(expected_dir, args.max_num_iterations):
                     run_dir, status = expected_dir, "reused"
                 else:
-                    run_dir, status = Path(Trainer(config).train()), "trained"
+                    if args.resume and expected_dir.is_dir():
+                        config.load_dir = resume_point(expected_dir, config)
+                        status = "resumed" if config.load_dir is not None else "restarted"
+                    run_dir = Path(Trainer(config).train())
                 records = read_metrics(run_dir / "metrics.jsonl")
                 new_rows = eval_rows(records, scene, method, seed, run_dir)
                 rows += new_rows
@@ -176,6 +250,7 @@ def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
                 (out_dir / "runs.json").write_text(json.dumps(runs, indent=1))
                 paths = write_report(rows, out_dir, baseline=baseline, time_key=args.time_key, lpips_note=lpips_note)
     paths.update(write_kurtosis_gap_plots(runs, out_dir))
+    paths.update(write_gradient_share_plots(runs, out_dir))
     paths["command"] = out_dir / "command.txt"
     paths["runs"] = out_dir / "runs.json"
     return paths
@@ -204,6 +279,34 @@ def write_kurtosis_gap_plots(runs: Sequence[dict], out_dir: Path) -> dict[str, P
     return paths
 
 
+def write_gradient_share_plots(runs: Sequence[dict], out_dir: Path) -> dict[str, Path]:
+    """Per scene, ``gradient_shares_<scene>.png``: each loss term's image-gradient norm relative to the photometric
+    term's over training, one panel per method, for the lowest seed (:func:`report.plot_gradient_shares`)."""
+    from kc_splatfacto.analysis.report import plot_gradient_shares
+    from kc_splatfacto.engine.metrics_log import read_metrics
+
+    paths = {}
+    for scene in dict.fromkeys(r["scene"] for r in runs):
+        seed = min(r["seed"] for r in runs if r["scene"] == scene)
+        records = {
+            r["method"]: read_metrics(Path(r["run_dir"]) / "metrics.jsonl")
+            for r in runs
+            if r["scene"] == scene and r["seed"] == seed
+        }
+        path = plot_gradient_shares(records, out_dir / f"gradient_shares_{scene}.png", title=f"{scene}, seed {seed}")
+        if path is not None:
+            paths[f"gradient_shares_{scene}"] = path
+    return paths
+
+
+def check_bench_args(args: argparse.Namespace) -> None:
+    """Refuse budgets that would train nothing, before the first run starts."""
+    if args.max_num_iterations < 1:
+        raise UserError(f"--max-num-iterations must be at least 1, got {args.max_num_iterations}")
+    if args.num_evals < 1:
+        raise UserError(f"--num-evals must be at least 1, got {args.num_evals}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="kc-bench",
@@ -215,6 +318,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--max-num-iterations", type=int, default=1000, help="the step budget of every run")
     parser.add_argument("--num-evals", type=int, default=8, help="log-spaced test evaluations per run")
+    parser.add_argument("--eval-at-steps", type=int, nargs="*", default=[],
+                        help="extra evaluation steps besides the log-spaced ones (e.g. 7000 in a 30000-step study)")
     parser.add_argument("--downscale-factor", type=int, default=None, help="image downscale handed to the dataparser")
     parser.add_argument(
         "--steps-scale", default="none",
@@ -229,18 +334,25 @@ def build_parser() -> argparse.ArgumentParser:
                         help="dotted config overrides applied to every run, e.g. pipeline.model.rasterization_backend=cpu")
     parser.add_argument("--output-dir", type=Path, default=Path("bench"), help="report folder")
     parser.add_argument("--runs-dir", type=Path, default=None, help="run folders (default OUTPUT_DIR/runs)")
-    parser.add_argument("--resume", action="store_true", help="reuse runs that already reached the budget")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue a stopped study: reuse finished runs, resume interrupted ones from their last "
+                             "checkpoint (same command line plus --resume)")
+    parser.add_argument("--steps-per-save", type=int, default=1000,
+                        help="checkpoint every this many steps (what --resume continues from; 0: only at the end)")
     return parser
 
 
 def entrypoint(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
+    """``kc-bench``: user errors are one line and exit code 2 (``--debug`` shows the traceback)."""
+    from kc_splatfacto.cli.main import run_cli
+
+    return run_cli("kc-bench", main, argv)
+
+
+def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        paths = run_bench(args, argv)
-    except (FileNotFoundError, ValueError) as exc:
-        print(f"kc-bench: error: {exc}", file=sys.stderr)
-        return 2
+    check_bench_args(args)
+    paths = run_bench(args, argv)
     for name, path in paths.items():
         print(f"{name}: {path}")
     return 0

@@ -3,14 +3,15 @@
 JSON shape (ns-eval's, plus what a reader needs to trust the numbers)::
 
     {"experiment_name", "method_name", "checkpoint", "step",
-     "results": {"psnr", "psnr_std", "ssim", "ssim_std", "lpips", "lpips_std", "lpips_unavailable",
+     "results": {"psnr", "psnr_std", "ssim", "ssim_std", "lpips", "lpips_std", "lpips_net", "lpips_unavailable",
                  "num_rays_per_sec", "fps", "num_images"},
      "per_image": [{"index", "image", "psnr", "ssim", "lpips"}],
      "ssim_convention": "...", "psnr_convention": "..."}
 
 PSNR and SSIM are computed per image on the float render against the float ground truth by the trainer's own
-``evaluate_split``, then averaged (std over images, population). LPIPS needs pretrained network weights that are not available offline; it is
-reported as null with the reason rather than approximated.
+``evaluate_split``, then averaged (std over images, population). LPIPS is v0.1 with AlexNet (``lpips_net``; see
+:mod:`kc_splatfacto.lpips`); where its weights are not installed it is null with the reason (and the install
+command), never approximated.
 """
 
 from __future__ import annotations
@@ -22,6 +23,8 @@ import time
 from pathlib import Path
 
 from kc_splatfacto.atomic import atomic_write_text
+from kc_splatfacto.cli.main import check_output_path, run_cli
+from kc_splatfacto.errors import UserError
 
 
 SSIM_CONVENTION = (
@@ -29,10 +32,6 @@ SSIM_CONVENTION = (
     "mean over pixels and RGB channels of one image in [0,1]; the training loss uses 1 - SSIM"
 )
 PSNR_CONVENTION = "PSNR = -10 log10(MSE) over pixels and RGB channels of one image in [0,1], averaged over images"
-LPIPS_UNAVAILABLE = (
-    "LPIPS needs pretrained AlexNet/VGG weights (the lpips package or torchvision) that cannot be downloaded here; "
-    "not approximated"
-)
 
 
 def checkpoint_path(run_dir: Path, step: int) -> Path:
@@ -61,13 +60,15 @@ def evaluate_loaded_run(loaded, split: str = "test") -> dict:
 
     dataset = loaded.test_dataset if split == "test" else loaded.train_dataset
     if dataset is None or len(dataset) == 0:
-        raise ValueError(f"kc-eval: the {split} split of {loaded.run_dir} has no images; nothing to evaluate")
+        raise UserError(f"kc-eval: the {split} split of {loaded.run_dir} has no images; nothing to evaluate")
     evaluation = evaluate_split(loaded.model, dataset)
     height, width = dataset.image_float(0).shape[:2]
     fps = evaluation.get("render_fps")
-    results = {key: evaluation.get(key) for key in ("psnr", "psnr_std", "ssim", "ssim_std", "lpips", "lpips_std")}
+    results = {
+        key: evaluation.get(key) for key in ("psnr", "psnr_std", "ssim", "ssim_std", "lpips", "lpips_std", "lpips_net")
+    }
     if results["lpips"] is None:
-        results["lpips_unavailable"] = evaluation.get("lpips_unavailable") or LPIPS_UNAVAILABLE
+        results["lpips_unavailable"] = evaluation.get("lpips_unavailable")
     results.update(
         {
             "fps": fps,
@@ -84,7 +85,7 @@ def run_eval(load_config: Path, output_path: Path | None = None, step: int | Non
 
     load_config = Path(load_config)
     if not load_config.is_file():
-        raise FileNotFoundError(f"kc-eval: --load-config {load_config} does not exist (pass a run's config.yml)")
+        raise UserError(f"kc-eval: --load-config {load_config} does not exist (pass a run's config.yml)")
     loaded = load_run(load_config, step=step, device="cpu")
     evaluation = evaluate_loaded_run(loaded, split)
     config = loaded.config
@@ -107,19 +108,21 @@ def run_eval(load_config: Path, output_path: Path | None = None, step: int | Non
 
 
 def entrypoint(argv: list[str] | None = None) -> int:
+    """``kc-eval``: user errors are one line and exit code 2 (``--debug`` shows the traceback)."""
+    return run_cli("kc-eval", main, argv)
+
+
+def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="kc-eval", description="Evaluate a trained run on its test split (ns-eval's JSON).")
     parser.add_argument("--load-config", type=Path, required=True, help="the run's config.yml")
     parser.add_argument("--output-path", type=Path, default=Path("metrics.json"), help="where to write the JSON")
     parser.add_argument("--step", type=int, default=None, help="checkpoint step (default: the latest)")
     parser.add_argument("--split", choices=("test", "train"), default="test")
     args = parser.parse_args(argv)
-    try:
-        payload = run_eval(args.load_config, args.output_path, args.step, args.split)
-    except (FileNotFoundError, ValueError) as exc:
-        print(f"kc-eval: error: {exc}", file=sys.stderr)
-        return 2
+    check_output_path(args.output_path, "--output-path")
+    payload = run_eval(args.load_config, args.output_path, args.step, args.split)
     r = payload["results"]
-    lpips = "LPIPS n/a" if r["lpips"] is None else f"LPIPS {r['lpips']:.4f}"
+    lpips = "LPIPS n/a" if r["lpips"] is None else f"LPIPS({r['lpips_net']}) {r['lpips']:.4f}"
     print(
         f"{payload['method_name']} step {payload['step']}: PSNR {r['psnr']:.3f} ± {r['psnr_std']:.3f} dB, "
         f"SSIM {r['ssim']:.4f} ± {r['ssim_std']:.4f}, {lpips}, {r['fps']:.1f} fps over {r['num_images']} images "

@@ -6,6 +6,9 @@ import argparse
 import sys
 from pathlib import Path
 
+from kc_splatfacto.cli.main import check_output_path, run_cli
+from kc_splatfacto.errors import UserError
+
 
 def run_export(load_config: Path, output_path: Path, step: int | None = None):
     """Load a run and write its Gaussians; returns :class:`kc_splatfacto.model.ply.PlyExportResult`."""
@@ -14,23 +17,28 @@ def run_export(load_config: Path, output_path: Path, step: int | None = None):
 
     load_config = Path(load_config)
     if not load_config.is_file():
-        raise FileNotFoundError(f"kc-export: --load-config {load_config} does not exist (pass a run's config.yml)")
+        raise UserError(f"kc-export: --load-config {load_config} does not exist (pass a run's config.yml)")
+    check_output_path(output_path, "--output-path")
     loaded = load_run(load_config, step=step, device="cpu")
     params = {name: value.detach() for name, value in loaded.model.gauss_params.items()}
-    return export_ply(output_path, params)
+    try:
+        return export_ply(output_path, params)
+    except ValueError as exc:  # e.g. every Gaussian non-finite: the run, not the code, is the problem
+        raise UserError(f"kc-export: cannot export the Gaussians of {load_config.parent}: {exc}") from exc
 
 
 def entrypoint(argv: list[str] | None = None) -> int:
+    """``kc-export``: user errors are one line and exit code 2 (``--debug`` shows the traceback)."""
+    return run_cli("kc-export", main, argv)
+
+
+def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="kc-export", description="Export a run's Gaussians as a 3DGS PLY (SuperSplat, Inria viewers).")
     parser.add_argument("--load-config", type=Path, required=True, help="the run's config.yml")
     parser.add_argument("--output-path", type=Path, default=Path("splat.ply"), help="the .ply file to write")
     parser.add_argument("--step", type=int, default=None, help="checkpoint step (default: the latest)")
     args = parser.parse_args(argv)
-    try:
-        result = run_export(args.load_config, args.output_path, args.step)
-    except (FileNotFoundError, ValueError, KeyError) as exc:
-        print(f"kc-export: error: {exc}", file=sys.stderr)
-        return 2
+    result = run_export(args.load_config, args.output_path, args.step)
     note = f", dropped {result.num_dropped} non-finite" if result.num_dropped else ""
     print(f"wrote {result.num_written} Gaussians (SH rest {result.sh_rest_coeffs}/channel{note}) -> {result.path}")
     return 0

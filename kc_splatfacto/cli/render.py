@@ -11,9 +11,13 @@ Writes:
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
+from kc_splatfacto.cli.main import run_cli
+from kc_splatfacto.engine.run_guard import check_writable_folder
+from kc_splatfacto.errors import UserError
 
 #: OpenCV FourCC of the mp4 writer; 'mp4v' (MPEG-4 part 2) ships with every opencv-python wheel.
 MP4_FOURCC = "mp4v"
@@ -106,7 +110,7 @@ def write_diagnostics(loaded, out_dir: Path, views: list[int]) -> list[Path]:
     dataset = loaded.test_dataset
     for i in views:
         if not 0 <= i < len(dataset):
-            raise ValueError(f"kc-render: --diagnostic-views index {i} is outside the test split (0..{len(dataset) - 1})")
+            raise UserError(f"kc-render: --diagnostic-views index {i} is outside the test split (0..{len(dataset) - 1})")
         rgb, _ = render_view(loaded.model, dataset.cameras, i)
         paths.append(
             save_view_diagnostics(rgb, composite_with_background(dataset.image_float(i), loaded.model.background_color),
@@ -137,13 +141,18 @@ def run_render(
 
     load_config = Path(load_config)
     if not load_config.is_file():
-        raise FileNotFoundError(f"kc-render: --load-config {load_config} does not exist (pass a run's config.yml)")
+        raise UserError(f"kc-render: --load-config {load_config} does not exist (pass a run's config.yml)")
+    if video and not (math.isfinite(fps) and fps > 0):
+        raise UserError(f"kc-render: --fps must be a positive number, got {fps}")
+    if video and num_frames < 1:
+        raise UserError(f"kc-render: --num-frames must be at least 1, got {num_frames}")
+    check_writable_folder(Path(output_dir), "--output-dir")
     loaded = load_run(load_config, step=step, device="cpu")
     if hasattr(loaded.model, "eval"):
         loaded.model.eval()
     dataset = loaded.test_dataset
     if dataset is None or len(dataset) == 0:
-        raise ValueError(f"kc-render: the test split of {loaded.run_dir} is empty; nothing to render")
+        raise UserError(f"kc-render: the test split of {loaded.run_dir} is empty; nothing to render")
     output_dir = Path(output_dir)
     result = {"views": write_side_by_side(loaded.model, dataset, output_dir / "views")}
     if video:
@@ -156,6 +165,11 @@ def run_render(
 
 
 def entrypoint(argv: list[str] | None = None) -> int:
+    """``kc-render``: user errors are one line and exit code 2 (``--debug`` shows the traceback)."""
+    return run_cli("kc-render", main, argv)
+
+
+def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="kc-render", description="Render test views next to GT, and a camera-path video.")
     parser.add_argument("--load-config", type=Path, required=True, help="the run's config.yml")
     parser.add_argument("--output-dir", type=Path, default=Path("renders"))
@@ -166,12 +180,8 @@ def entrypoint(argv: list[str] | None = None) -> int:
     parser.add_argument("--diagnostics", action="store_true", help="also the wavelet diagnostics PNGs")
     parser.add_argument("--diagnostic-views", type=int, nargs="+", default=[0], help="test view indices for diagnostics")
     args = parser.parse_args(argv)
-    try:
-        result = run_render(args.load_config, args.output_dir, args.step, args.num_frames, args.fps,
-                            not args.no_video, args.diagnostics, tuple(args.diagnostic_views))
-    except (FileNotFoundError, ValueError, RuntimeError) as exc:
-        print(f"kc-render: error: {exc}", file=sys.stderr)
-        return 2
+    result = run_render(args.load_config, args.output_dir, args.step, args.num_frames, args.fps,
+                        not args.no_video, args.diagnostics, tuple(args.diagnostic_views))
     print(f"wrote {len(result['views'])} side-by-side views to {args.output_dir / 'views'}")
     if "video" in result:
         print(f"wrote {result['video']} ({result['video_frames']} frames, checked by reading it back)")

@@ -12,6 +12,9 @@ Methods come from the ``kc_splatfacto.method_configs`` entry points and ``KC_SPL
 The dataparser is a subcommand after the method's options (``auto``, the default, detects the format from
 ``--data``); ``kc-train METHOD DATAPARSER --help`` lists its options.
     kc-train kc-splatfacto --data demo --load-dir outputs/demo/kc-splatfacto/<timestamp>/nerfstudio_models
+
+A mistake in the input (scene, flags, checkpoint, config) prints one line ``kc-train: error: ...`` and exits 2;
+``--debug`` or ``KC_DEBUG=1`` shows its traceback. SIGTERM, like Ctrl-C, saves a checkpoint and exits 0.
 """
 
 from __future__ import annotations
@@ -56,14 +59,25 @@ def override_config(config: Any, args: list[str]) -> Any:
 
 
 def entrypoint(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
+    """``kc-train``: user errors are one line and exit code 2 (``--debug`` shows the traceback)."""
+    from kc_splatfacto.cli.main import run_cli
+
+    return run_cli("kc-train", main, argv)
+
+
+def main(argv: list[str]) -> int:
     if not argv:
         argv = ["--help"]
     config = parse_config(argv)
 
     from kc_splatfacto.engine.trainer import TrainingDivergedError
+    from kc_splatfacto.errors import UserError
     from kc_splatfacto.model.strategy import NoGaussiansLeftError
 
+    try:
+        config.machine.resolve_device()
+    except RuntimeError as exc:  # e.g. --machine.device cuda on a machine without CUDA: the flag, not a bug
+        raise UserError(str(exc)) from exc
     trainer = config.setup()
     try:
         run_dir = trainer.train()
@@ -76,7 +90,7 @@ def entrypoint(argv: list[str] | None = None) -> int:
         lpips_text = f"{lpips:.4f}" if lpips is not None else f"n/a ({final.get('lpips_unavailable')})"
         print(
             f"final {final.get('split', 'test')} metrics at step {final['step']} over {final['num_images']} images: "
-            f"PSNR {final['psnr']:.3f} dB, SSIM {final['ssim']:.4f}, LPIPS {lpips_text}"
+            f"PSNR {final['psnr']:.3f} dB, SSIM {final['ssim']:.4f}, LPIPS({final.get('lpips_net', 'alex')}) {lpips_text}"
         )
     print(f"gaussians: {trainer.model.num_points}, training time: {trainer._train_s:.1f} s")
     print(f"output folder: {run_dir}")

@@ -24,6 +24,7 @@ import torch
 
 from kc_splatfacto.data.outputs import Cameras, DataparserOutputs
 from kc_splatfacto.atomic import atomic_write_text
+from kc_splatfacto.errors import UserError
 
 SPLITS = ("train", "val", "test")
 ORIENTATION_METHODS = ("up", "none")
@@ -33,7 +34,7 @@ PARALLEL_EPS = 1e-6
 CACHE_ENV = "KC_SPLATFACTO_CACHE"
 
 
-class DataParserError(ValueError):
+class DataParserError(UserError, ValueError):
     """Bad scene input: the message names the file or argument and what to do about it."""
 
 
@@ -60,6 +61,9 @@ class DataParserConfig:
     """nerfstudio's centring: "poses" (mean camera centre -> origin) or "none"."""
     auto_scale_poses: bool = True
     """Scale so the largest absolute camera coordinate is 1 (nerfstudio's ``auto_scale_poses``)."""
+    allow_symlinks_out: bool = False
+    """Read image files whose symlinks lead outside the scene folder (names with '..' or absolute names are refused
+    whatever this says)."""
     cache_dir: Path | None = None
     """Where derived images (downscaled, undistorted) go. None: next to the scene's images when that folder is
     writable, else under ``$KC_SPLATFACTO_CACHE`` (``~/.cache/kc_splatfacto``)."""
@@ -327,10 +331,20 @@ def read_dataparser_transforms(path: str | Path) -> PoseNormalization:
 
 
 def read_split_list(path: Path) -> list[str]:
-    """Basenames from a split list file, one a line (blank lines and ``#`` comments ignored)."""
-    names = []
-    for line in path.read_text().splitlines():
+    """Basenames from a split list file, one a line (blank lines and ``#`` comments ignored).
+
+    A name listed twice is an error naming the file, the name and its lines: training on it twice would silently
+    weight that view double.
+    """
+    names: list[str] = []
+    seen: dict[str, int] = {}
+    for number, line in enumerate(path.read_text().splitlines(), start=1):
         line = line.strip()
         if line and not line.startswith("#"):
+            if line in seen:
+                raise DataParserError(
+                    f"{path}: '{line}' is listed twice (lines {seen[line]} and {number}): remove the duplicate"
+                )
+            seen[line] = number
             names.append(line)
     return names

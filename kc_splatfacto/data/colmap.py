@@ -38,8 +38,16 @@ from kc_splatfacto.data.base import (
     normalize_poses,
     scene_scale_of,
 )
-from kc_splatfacto.data.images import derived_root, downscaled_paths, image_size, read_image, write_image_atomic
+from kc_splatfacto.data.images import (
+    derived_is_fresh,
+    derived_root,
+    downscaled_paths,
+    image_size,
+    read_image,
+    write_derived,
+)
 from kc_splatfacto.data.outputs import DataparserOutputs
+from kc_splatfacto.data.paths import inside_folder
 
 # COLMAP model folders tried in order when none is configured (nerfstudio's default is colmap/sparse/0).
 DEFAULT_MODEL_DIRS = ("sparse/0", "colmap/sparse/0", "sparse")
@@ -123,6 +131,12 @@ def find_model_dir(scene: Path, configured: Path | None, candidates: tuple[str, 
     )
 
 
+def model_file(folder: Path, name: str) -> Path:
+    """The ``name`` file (cameras, images, points3D) of the model in ``folder``: the .bin when present, else .txt."""
+    binary = Path(folder) / f"{name}.bin"
+    return binary if binary.is_file() else Path(folder) / f"{name}.txt"
+
+
 def has_model(folder: Path) -> bool:
     """Whether ``folder`` holds cameras and images files of a COLMAP model (binary or text)."""
     return any(all((folder / f"{name}{ext}").is_file() for name in ("cameras", "images")) for ext in (".bin", ".txt"))
@@ -163,11 +177,22 @@ def _camera_from_pycolmap(camera_id: int, camera, model_dir: Path) -> ColmapCame
 
 
 def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
-    """Read a COLMAP model (binary or text) with pycolmap; clear errors for unsupported cameras and NaN poses."""
+    """Read a COLMAP model (binary or text) with pycolmap.
+
+    Clear errors for unsupported cameras, NaN poses, far-from-unit quaternions, duplicate image names and a missing
+    points3D file; 3D points with NaN/inf coordinates are left out with one warning (binary and text alike).
+    """
     try:
         import pycolmap
     except ImportError as exc:  # a declared dependency; the message says how to get it back
         raise ImportError("reading COLMAP models needs pycolmap: pip install pycolmap") from exc
+    model_dir = Path(model_dir)
+    if not any((model_dir / f"points3D{ext}").is_file() for ext in (".bin", ".txt")):
+        raise DataParserError(
+            f"{model_dir} has cameras and images but no points3D.bin or points3D.txt: copy the model's points3D "
+            "file there (COLMAP writes it with the model; an empty one gives random initial Gaussians)"
+        )
+    dropped_points: list[int] = []
     try:
         reconstruction = pycolmap.Reconstruction(str(model_dir))
     except Exception as exc:
@@ -177,7 +202,10 @@ def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
                 f"the poses of images {', '.join(bad)} in {model_dir / 'images.txt'} contain NaN/inf: "
                 "fix or remove them"
             ) from exc
-        raise DataParserError(f"could not read the COLMAP model in {model_dir}: {exc}") from exc
+        dropped_points = _non_finite_point_lines(model_dir / "points3D.txt")
+        if not dropped_points:
+            raise DataParserError(f"could not read the COLMAP model in {model_dir}: {exc}") from exc
+        reconstruction = _read_without_point_lines(pycolmap, model_dir, dropped_points)
     cameras = {cid: _camera_from_pycolmap(cid, cam, model_dir) for cid, cam in reconstruction.cameras.items()}
     images = []
     for _, image in sorted(reconstruction.images.items()):
@@ -188,9 +216,16 @@ def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
             raise DataParserError(
                 f"the pose of image '{image.name}' in {model_dir} contains NaN/inf: fix images.txt/.bin"
             )
+        w2c[:3, :3] = _unit_rotation(np.asarray(pose.rotation.quat, np.float64), image, model_dir)
         if image.camera_id not in cameras:
             raise DataParserError(f"image '{image.name}' in {model_dir} names unknown camera {image.camera_id}")
         images.append(ColmapImage(image.name, int(image.camera_id), w2c))
+    names = [image.name for image in images]
+    twice = sorted({name for name in names if names.count(name) > 1})
+    if twice:
+        raise DataParserError(
+            f"{model_file(model_dir, 'images')} registers {', '.join(twice)} more than once: keep one pose per image"
+        )
     if load_points and len(reconstruction.points3D) > 0:
         points = list(reconstruction.points3D.values())
         xyz = np.array([p.xyz for p in points], np.float64).reshape(-1, 3)
@@ -201,7 +236,93 @@ def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
             xyz, rgb = xyz[finite], rgb[finite]
     else:
         xyz, rgb = np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
+    if dropped_points and load_points:
+        shown = ", ".join(str(n) for n in dropped_points[:10]) + (" ..." if len(dropped_points) > 10 else "")
+        warnings.warn(
+            f"{model_dir / 'points3D.txt'}: {len(dropped_points)} 3D points with NaN/inf coordinates were left out "
+            f"(lines {shown})"
+        )
     return ColmapModel(model_dir, cameras, images, xyz, rgb)
+
+
+#: A quaternion whose norm is this close to 1 is rounding (text models print ~16 digits): normalized silently.
+#: Farther from 1 the file is broken (a rotation scaled by |q|^2 would shear every ray): an error.
+QUATERNION_NORM_TOLERANCE = 1e-3
+
+
+def _unit_rotation(quat_xyzw: np.ndarray, image, model_dir: Path) -> np.ndarray:
+    """[3,3] rotation of a COLMAP quaternion (pycolmap's x, y, z, w order), normalized; an error when far from unit."""
+    norm = float(np.linalg.norm(quat_xyzw))
+    if not abs(norm - 1.0) <= QUATERNION_NORM_TOLERANCE:
+        where = model_file(model_dir, "images")
+        line = _images_txt_line(where, image.image_id) if where.suffix == ".txt" else None
+        at = f"{where}:{line}" if line is not None else str(where)
+        raise DataParserError(
+            f"{at}: the rotation quaternion of image '{image.name}' has norm {norm:.6g}, not 1 (tolerance "
+            f"{QUATERNION_NORM_TOLERANCE:g}): the pose is not a rotation; fix QW QX QY QZ of that image"
+        )
+    x, y, z, w = quat_xyzw / norm
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _images_txt_line(images_txt: Path, image_id: int) -> int | None:
+    """1-based line number of image ``image_id``'s pose line in ``images.txt``."""
+    data_lines = 0
+    for number, line in enumerate(images_txt.read_text(errors="replace").splitlines(), start=1):
+        if line.startswith("#"):
+            continue
+        if data_lines % 2 == 0:
+            fields = line.split()
+            if fields and fields[0] == str(image_id):
+                return number
+        data_lines += 1
+    return None
+
+
+def _non_finite_point_lines(points_txt: Path) -> list[int]:
+    """1-based numbers of the lines of ``points3D.txt`` whose X Y Z hold NaN/inf (pycolmap's reader rejects them)."""
+    if not points_txt.is_file():
+        return []
+    bad = []
+    for number, line in enumerate(points_txt.read_text(errors="replace").splitlines(), start=1):
+        fields = line.split()
+        if not fields or line.startswith("#") or len(fields) < 4:
+            continue
+        try:
+            finite = np.isfinite([float(v) for v in fields[1:4]]).all()
+        except ValueError:
+            continue
+        if not finite:
+            bad.append(number)
+    return bad
+
+
+def _read_without_point_lines(pycolmap, model_dir: Path, skip_lines: list[int]):
+    """The text model of ``model_dir`` read with the ``points3D.txt`` lines ``skip_lines`` left out (a temp copy)."""
+    import shutil
+    import tempfile
+
+    skip = set(skip_lines)
+    with tempfile.TemporaryDirectory(prefix="kc_colmap_") as tmp:
+        for path in model_dir.iterdir():
+            if path.is_file() and path.name != "points3D.txt":
+                shutil.copyfile(path, Path(tmp) / path.name)
+        kept = [
+            line
+            for number, line in enumerate((model_dir / "points3D.txt").read_text().splitlines(), start=1)
+            if number not in skip
+        ]
+        (Path(tmp) / "points3D.txt").write_text("\n".join(kept) + "\n")
+        try:
+            return pycolmap.Reconstruction(tmp)
+        except Exception as exc:
+            raise DataParserError(f"could not read the COLMAP model in {model_dir}: {exc}") from exc
 
 
 def _images_with_non_finite_poses(images_txt: Path) -> list[str]:
@@ -283,8 +404,8 @@ def undistorted_paths(
         relative = Path(path).relative_to(images_dir)
         # Undistorted copies are lossless PNGs: a JPEG round trip would add artefacts to the training targets.
         target = folder / relative.with_suffix(".png")
-        if camera.is_distorted and not target.exists():
-            write_image_atomic(target, undistort_image(read_image(path), camera))
+        if camera.is_distorted and not derived_is_fresh(target, path, folder):
+            write_derived(target, undistort_image(read_image(path), camera), path, folder)
         out.append(target if camera.is_distorted else Path(path))
     return out, folder
 
@@ -316,6 +437,9 @@ def pinhole_images(
     Returns:
         (image paths to load, [N,4] fx, fy, cx, cy, [N,2] width, height).
     """
+    if config.downscale_factor > 1:  # before any image is undistorted or resized: nothing half-written
+        pinhole_sizes = [undistorted_pinhole(c)[1][2:] if c.is_distorted else (c.width, c.height) for c in cameras]
+        scale_intrinsics(np.zeros((len(cameras), 4)), np.asarray(pinhole_sizes).reshape(-1, 2), config.downscale_factor)
     intrinsics, sizes, out_paths = [], [], []
     for path, camera, images_dir in zip(paths, cameras, images_dirs):
         if camera.is_distorted:
@@ -357,6 +481,8 @@ def colmap_split_outputs(
         raise DataParserError(
             f"split '{split}' of {config.data} is empty: check the split lists / eval mode of {type(config).__name__}"
         )
+    for name in normalize_names:  # names come from a file someone sent: they must stay inside the image folder
+        inside_folder(images_dir, name, f"image name in {model_file(model.path, 'images')}", config.allow_symlinks_out)
     missing = [name for name in split_names if not (images_dir / name).is_file()]
     if missing:
         raise DataParserError(

@@ -36,7 +36,8 @@ def detect_format(data: Path) -> str:
     raise DataParserError(
         f"cannot tell the format of {data}: expected train_list.txt + test_list.txt + images/ (SPARS3R), "
         f"transforms.json (nerfstudio), or images/ + sparse/0/ (COLMAP); or name the dataparser as a subcommand "
-        f"after the method's options (`kc-train kc-splatfacto --data SCENE colmap`)"
+        f"after the method's options (`kc-train kc-splatfacto --data SCENE colmap`; registered: "
+        f"{', '.join(discover_dataparsers())})"
     )
 
 

@@ -8,13 +8,14 @@ resize by ``w_new / w`` scales ``fx`` and ``cx`` by exactly that ratio.
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import stat
 from pathlib import Path
 
 import numpy as np
 
-from kc_splatfacto.atomic import atomic_write_bytes
+from kc_splatfacto.atomic import atomic_write_bytes, atomic_write_text
 from kc_splatfacto.data.base import DataParserError, default_cache_dir
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".exr")
@@ -37,6 +38,7 @@ def read_image(path: str | Path) -> np.ndarray:
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None or image.size == 0:
         raise DataParserError(f"image file {path} is corrupt or not an image OpenCV can read: re-export or remove it")
+    check_complete(path)
     if image.ndim == 2:
         image = np.repeat(image[:, :, None], 3, axis=2)
     if image.shape[2] == 4:
@@ -46,6 +48,30 @@ def read_image(path: str | Path) -> np.ndarray:
     else:
         raise DataParserError(f"image file {path} has {image.shape[2]} channels: expected gray, RGB or RGBA")
     return to_uint8(image, path)
+
+
+def check_complete(path: Path) -> None:
+    """An error naming ``path`` when its image data ends early or is damaged.
+
+    OpenCV decodes a truncated JPEG with a flat grey lower part and only prints a libjpeg warning without the file
+    name; Pillow's full decode raises instead. Formats Pillow does not know (e.g. EXR) are left to OpenCV.
+    """
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        handle = Image.open(path)
+    except UnidentifiedImageError:
+        return
+    except OSError as exc:
+        raise DataParserError(f"image file {path} cannot be opened ({exc}): re-export or remove it") from exc
+    try:
+        with handle:
+            handle.load()
+    except (OSError, SyntaxError, ValueError) as exc:  # Pillow's "image file is truncated", broken data streams
+        raise DataParserError(
+            f"image file {path} does not decode completely ({exc}): the file is truncated or damaged; "
+            "copy it again or remove it from the scene"
+        ) from exc
 
 
 def to_uint8(image: np.ndarray, path: str | Path = "<array>") -> np.ndarray:
@@ -125,6 +151,42 @@ def derived_root(images_dir: Path, cache_dir: Path | None) -> Path:
     return base / f"{scene.name}-{digest}"
 
 
+#: Hidden folder, inside each derived folder, holding one JSON per derived image: the source's size and mtime.
+SOURCE_RECORDS = ".sources"
+
+
+def _source_stamp(source: Path) -> dict:
+    info = Path(source).stat()
+    return {"size": info.st_size, "mtime_ns": info.st_mtime_ns}
+
+
+def _record_path(target: Path, derived_folder: Path) -> Path:
+    return derived_folder / SOURCE_RECORDS / (str(target.relative_to(derived_folder)) + ".json")
+
+
+def derived_is_fresh(target: Path, source: Path, derived_folder: Path) -> bool:
+    """Whether the derived image ``target`` (inside ``derived_folder``) was made from ``source`` as it is now.
+
+    Written by this project: the source's size and mtime recorded beside it must match. Shipped with the scene (no
+    record): fresh unless the source is newer than it.
+    """
+    if not target.is_file():
+        return False
+    record = _record_path(target, derived_folder)
+    if record.is_file():
+        try:
+            return json.loads(record.read_text()) == _source_stamp(source)
+        except (OSError, ValueError):
+            return False
+    return target.stat().st_mtime_ns >= Path(source).stat().st_mtime_ns
+
+
+def write_derived(target: Path, image: np.ndarray, source: Path, derived_folder: Path) -> None:
+    """Write a derived image and record its source's size and mtime (see :func:`derived_is_fresh`)."""
+    write_image_atomic(target, image)
+    atomic_write_text(_record_path(target, derived_folder), json.dumps(_source_stamp(source)))
+
+
 def resized_size(width: int, height: int, factor: int) -> tuple[int, int]:
     """Size after an integer downscale: floor division, as nerfstudio's ``rescale_output_resolution``."""
     new_w, new_h = width // factor, height // factor
@@ -152,14 +214,14 @@ def downscaled_paths(
     out = []
     for path in image_paths:
         relative = Path(path).relative_to(images_dir)
-        if cache_dir is None and (beside / relative).is_file():
+        if cache_dir is None and derived_is_fresh(beside / relative, path, beside):
             out.append(beside / relative)
             continue
         target = derived / relative
-        if not target.exists():
+        if not derived_is_fresh(target, path, derived):  # missing, or made from an older version of the source
             image = read_image(path)
             new_w, new_h = resized_size(image.shape[1], image.shape[0], factor)
-            write_image_atomic(target, cv2.resize(image, (new_w, new_h), interpolation=cv2.INTER_AREA))
+            write_derived(target, cv2.resize(image, (new_w, new_h), interpolation=cv2.INTER_AREA), path, derived)
         out.append(target)
     return out
 

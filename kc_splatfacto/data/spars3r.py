@@ -22,6 +22,7 @@ from pathlib import Path
 from kc_splatfacto.data.base import DataParser, DataParserConfig, DataParserError, read_split_list
 from kc_splatfacto.data.colmap import colmap_split_outputs, find_model_dir, has_model, read_colmap_model
 from kc_splatfacto.data.outputs import DataparserOutputs
+from kc_splatfacto.data.paths import check_names_inside
 
 IMAGE_DIR_NAMES = ("images", "images_train+test")
 TRAIN_LIST_NAMES = ("train_list.txt", "train.txt")
@@ -95,6 +96,12 @@ class Spars3rDataParser(DataParser):
         train_names, test_names = read_split_list(train_list), read_split_list(test_list)
         if not train_names:
             raise DataParserError(f"the train list {train_list} is empty: list the training images, one a line")
+        if not test_names:
+            raise DataParserError(
+                f"the test list {test_list} is empty: list the test images, one a line (evaluation needs at least one)"
+            )
+        for names, listing in ((train_names, train_list), (test_names, test_list)):
+            check_names_inside(images_dir, names, str(listing), self.config.allow_symlinks_out)
 
         model_dir = spars3r_model_dir(scene, self.config.colmap_path)
         model = self.memo(("colmap", model_dir), read_colmap_model, model_dir, self.config.load_3d_points)

@@ -45,6 +45,7 @@ from kc_splatfacto.data.base import (
 from kc_splatfacto.data.colmap import ColmapCamera, check_image_sizes, pinhole_images, prepare_masks, split_indices
 from kc_splatfacto.data.images import image_size
 from kc_splatfacto.data.outputs import DataparserOutputs
+from kc_splatfacto.data.paths import inside_folder
 
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
 DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")  # OpenCV's coefficient order
@@ -169,11 +170,14 @@ class TransformsDataParser(DataParser):
         for frame in meta["frames"]:
             if "file_path" not in frame or "transform_matrix" not in frame:
                 raise DataParserError(f"{json_path}: every frame needs 'file_path' and 'transform_matrix'")
-            path = base / frame["file_path"]
+            path = inside_folder(base, frame["file_path"], f"{json_path} file_path", self.config.allow_symlinks_out)
             if not path.is_file() and path.suffix == "":  # instant-ngp's Blender exports omit the extension
                 path = next(
                     (path.with_suffix(s) for s in (".png", ".jpg", ".jpeg") if path.with_suffix(s).is_file()), path
                 )
+                if path.suffix:  # the file actually read must stay inside too
+                    named = str(Path(frame["file_path"]).with_suffix(path.suffix))
+                    inside_folder(base, named, f"{json_path} file_path", self.config.allow_symlinks_out)
             (frames if path.is_file() else missing).append((path, frame))
         if missing:
             warnings.warn(
@@ -184,6 +188,9 @@ class TransformsDataParser(DataParser):
             raise DataParserError(f"{json_path}: none of the frames' image files exist under {base}")
         frames.sort(key=lambda item: str(item[0]))
         paths = [path for path, _ in frames]
+        twice = sorted({str(p) for p, q in zip(paths, paths[1:]) if p == q})
+        if twice:  # one image with two poses would be trained on twice, with contradicting cameras
+            raise DataParserError(f"{json_path}: frames {', '.join(twice)} appear more than once: keep one frame each")
         c2w_gl = np.stack([np.asarray(frame["transform_matrix"], np.float64) for _, frame in frames])
         if c2w_gl.shape[1:] not in ((4, 4), (3, 4)):
             raise DataParserError(f"{json_path}: transform_matrix must be 4x4 (or 3x4), got {c2w_gl.shape[1:]}")
@@ -208,6 +215,10 @@ class TransformsDataParser(DataParser):
                         raise DataParserError(
                             f"{json_path}: '{name}' in {which}_filenames is not a frame with an existing image: "
                             "fix the list or add the image"
+                        )
+                    if index_of[resolved] in idx:
+                        raise DataParserError(
+                            f"{json_path}: '{name}' is listed twice in {which}_filenames: remove the duplicate"
                         )
                     idx.append(index_of[resolved])
                 return idx
@@ -246,7 +257,10 @@ class TransformsDataParser(DataParser):
                     f"{json_path}: some frames of split '{split}' have a mask_path and others do not: give every "
                     "frame a mask or none"
                 )
-            mask_paths = [base / frames[i][1]["mask_path"] for i in chosen]
+            mask_paths = [
+                inside_folder(base, frames[i][1]["mask_path"], f"{json_path} mask_path", self.config.allow_symlinks_out)
+                for i in chosen
+            ]
             mask_paths = prepare_masks(self.config, mask_paths, cameras, [p.parent for p in mask_paths], metadata)
         split_paths, intrinsics, sizes = pinhole_images(
             self.config, split_paths, cameras, [p.parent for p in split_paths], metadata
@@ -268,7 +282,8 @@ class TransformsDataParser(DataParser):
             metadata={"normalization": normalization, "json_path": json_path, **metadata},
         )
         if self.config.load_3d_points and "ply_file_path" in meta:
-            xyz, rgb = read_ply_points(base / meta["ply_file_path"])
+            ply = inside_folder(base, meta["ply_file_path"], f"{json_path} ply_file_path", self.config.allow_symlinks_out)
+            xyz, rgb = read_ply_points(ply)
             outputs.points3d_xyz = torch.from_numpy(normalization.apply_to_points(xyz).astype(np.float32))
             outputs.points3d_rgb = torch.from_numpy(rgb.copy())
         return outputs

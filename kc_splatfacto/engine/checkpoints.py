@@ -1,18 +1,33 @@
 """Checkpoints ``nerfstudio_models/step-XXXXXXXXX.ckpt``: written atomically (temp file + ``os.replace``), so a crash
-or Ctrl-C mid-write never leaves a truncated checkpoint under the final name."""
+or Ctrl-C mid-write never leaves a truncated checkpoint under the final name.
+
+Loading uses ``torch.load(weights_only=True)``: tensors, numbers, strings, containers and numpy's RNG state arrays,
+never arbitrary pickled objects, so a checkpoint someone sent cannot run code. A file that does not load (truncated,
+not a checkpoint, a full disk while writing) is a :class:`~kc_splatfacto.errors.CheckpointError` naming it.
+"""
 
 from __future__ import annotations
 
+import errno
+import pickle
 import re
+import zipfile
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from kc_splatfacto.atomic import atomic_write
+from kc_splatfacto.errors import CheckpointError
 
 CHECKPOINT_DIR = "nerfstudio_models"
 CHECKPOINT_PATTERN = re.compile(r"^step-(\d{9})\.ckpt$")
+#: temp files of :func:`kc_splatfacto.atomic.atomic_write` for checkpoints (left behind only by a hard kill)
+TEMP_PATTERN = re.compile(r"^\.step-\d{9}\.ckpt\..*\.tmp$")
+
+
+class CheckpointNotFoundError(CheckpointError, FileNotFoundError):
+    """No checkpoint where one was asked for."""
 
 
 def checkpoint_name(step: int) -> str:
@@ -24,7 +39,17 @@ def save_checkpoint(directory: Path, step: int, payload: dict[str, Any], only_la
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / checkpoint_name(step)
-    atomic_write(path, lambda tmp: torch.save(payload, tmp))
+    try:
+        atomic_write(path, lambda tmp: torch.save(payload, tmp))
+    except (OSError, RuntimeError) as exc:  # torch.save reports a full disk as RuntimeError from its zip writer
+        if isinstance(exc, OSError) and exc.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS):
+            raise
+        if isinstance(exc, RuntimeError) and "write" not in str(exc).lower():
+            raise
+        raise CheckpointError(
+            f"could not write checkpoint {path} ({exc}): is the disk full? Free space and resume with --load-dir "
+            f"{directory} (the previous checkpoint there is intact)"
+        ) from exc
     if only_latest:
         for other in list_checkpoints(directory):
             if other != path:
@@ -47,18 +72,65 @@ def find_checkpoint(load_dir: Path, step: int | None = None) -> Path:
     if (load_dir / CHECKPOINT_DIR).is_dir():
         load_dir = load_dir / CHECKPOINT_DIR
     if not load_dir.is_dir():
-        raise FileNotFoundError(f"checkpoint folder {load_dir} does not exist: pass a run's nerfstudio_models folder")
+        raise CheckpointNotFoundError(
+            f"checkpoint folder {load_dir} does not exist: pass a run's nerfstudio_models folder"
+        )
     checkpoints = list_checkpoints(load_dir)
     if not checkpoints:
-        raise FileNotFoundError(f"no step-XXXXXXXXX.ckpt in {load_dir}")
+        raise CheckpointNotFoundError(f"no step-XXXXXXXXX.ckpt in {load_dir}")
     if step is None:
         return checkpoints[-1]
     path = load_dir / checkpoint_name(step)
     if not path.is_file():
         steps = [int(CHECKPOINT_PATTERN.match(p.name).group(1)) for p in checkpoints]
-        raise FileNotFoundError(f"no checkpoint for step {step} in {load_dir} (has steps {steps})")
+        raise CheckpointNotFoundError(f"no checkpoint for step {step} in {load_dir} (has steps {steps})")
     return path
 
 
+def remove_orphan_temp_files(directory: Path) -> list[Path]:
+    """Remove checkpoint temp files a hard kill (kill -9, power loss) left mid-write in ``directory``."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        return []
+    orphans = [p for p in directory.iterdir() if TEMP_PATTERN.match(p.name) and p.is_file()]
+    for orphan in orphans:
+        orphan.unlink(missing_ok=True)
+    return orphans
+
+
+def _numpy_rng_globals() -> list:
+    """What ``np.random.get_state()`` pickles to: numpy's array reconstruction, ndarray, dtype (data only)."""
+    import numpy as np
+
+    multiarray = getattr(np, "_core", None) or np.core
+    return [multiarray.multiarray._reconstruct, np.ndarray, np.dtype, type(np.dtype(np.uint32))]
+
+
 def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
-    return torch.load(Path(path), map_location=map_location, weights_only=False)
+    """The payload of a checkpoint file, loaded with ``weights_only=True``; a :class:`CheckpointError` naming the
+    file when it is missing, truncated, not a checkpoint, or holds objects other than data."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path} does not exist: pass a run's nerfstudio_models folder")
+    try:
+        with torch.serialization.safe_globals(_numpy_rng_globals()):
+            payload = torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as exc:
+        refused = re.search(r"Unsupported global: GLOBAL (\S+)", str(exc))
+        if refused:  # weights_only refused a global: the file asks to run code, not to rebuild data
+            raise CheckpointError(
+                f"checkpoint {path} holds objects other than tensors and plain values ({refused.group(1)}); "
+                "refusing to load it, since it could run code"
+            ) from exc
+        raise CheckpointError(
+            f"checkpoint {path} is truncated or not a checkpoint ({str(exc)[:200]}): resume from an older step "
+            "with --load-step, or delete it"
+        ) from exc
+    except (RuntimeError, EOFError, zipfile.BadZipFile, ValueError, OSError) as exc:
+        raise CheckpointError(
+            f"checkpoint {path} is truncated or not a checkpoint ({type(exc).__name__}: {str(exc)[:200]}): "
+            "resume from an older step with --load-step, or delete it"
+        ) from exc
+    if not isinstance(payload, dict) or "model" not in payload or "step" not in payload:
+        raise CheckpointError(f"checkpoint {path} is not a kc-splatfacto checkpoint (no 'model' and 'step')")
+    return payload

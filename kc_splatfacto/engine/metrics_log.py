@@ -5,7 +5,9 @@ start of training, resumed runs continue the count), ``train_s`` (time in traini
 checkpointing excluded) and ``kind``:
 - ``"train"``: the loss terms (``main_loss``, ``wavelet_loss``, ... and ``loss``, their sum), ``psnr`` of the training
   view, ``gaussian_count``, ``lr_means``, and on logging steps ``kurtosis_render`` / ``kurtosis_gt`` (per band).
-- ``"eval"``: ``psnr``, ``ssim``, ``lpips`` (null with ``lpips_unavailable``), ``num_images``, ``split``.
+- ``"eval"``: ``psnr``, ``ssim``, ``lpips`` and ``lpips_net`` (null with ``lpips_unavailable``), ``num_images``,
+  ``split``.
+- ``"gradient_shares"``: per loss term ``norm`` / ``share`` / ``top`` of its image gradient (engine/gradient_shares.py).
 - ``"bad_step"``: a skipped step and ``reason``; ``"densify"``: what density control did; ``"checkpoint"``: ``path``.
 """
 

@@ -1,7 +1,12 @@
 """Adam parameter groups and learning-rate schedules, nerfstudio style (one optimizer per Gaussian parameter group).
 
-Splatfacto 1.1.5's groups (``nerfstudio/configs/method_configs.py``): means 1.6e-4 decaying exponentially to 1.6e-6,
-features_dc 2.5e-3, features_rest 2.5e-3 / 20, opacities 0.05, scales 5e-3, quats 1e-3, all Adam with eps 1e-15.
+Splatfacto 1.1.5's groups (``nerfstudio/configs/method_configs.py``): means 1.6e-4 decaying exponentially to 1.6e-6
+over 30000 steps, features_dc 2.5e-3, features_rest 2.5e-3 / 20, opacities 0.05, scales 5e-3, quats 1e-3, all Adam
+with eps 1e-15.
+
+Schedules are nominal, as in nerfstudio: the decay runs over the scheduler's own ``max_steps`` (30000 for the means)
+times the model's ``steps_scale``, never over the run's ``--max-num-iterations``. A run cut short is therefore the
+first N steps of the full run (at step 500 of an 800-step run the means rate is 1.48e-4, as in a 30000-step run).
 
 One optimizer per group (rather than one Adam with several groups) is what density control needs: the tensor surgery
 in :mod:`kc_splatfacto.model.ops` replaces a group's parameter and rewrites that optimizer's state alone.
@@ -15,6 +20,8 @@ from dataclasses import dataclass, field
 import torch
 
 ADAM_EPS = 1e-15
+SPLATFACTO_SCHEDULE_STEPS = 30000
+"""length of Splatfacto's nominal schedule (its means learning-rate decay and ``max_num_iterations``)"""
 
 
 @dataclass
@@ -38,18 +45,24 @@ class ExponentialDecaySchedulerConfig:
     """lr(t) = exp((1 - t) log(lr_init) + t log(lr_final)), t = clip((step - warmup) / (max_steps - warmup), 0, 1).
 
     During the optional warm-up the rate ramps linearly from ``lr_pre_warmup`` (nerfstudio's ``ramp="linear"``).
-    ``max_steps=None`` means "the whole run" (the trainer fills in ``max_num_iterations``).
+    ``max_steps`` and ``warmup_steps`` are nominal: ``setup`` multiplies them by the model's ``steps_scale`` (like every
+    other step-based schedule) and nothing else, so the schedule never depends on the run's length.
     """
 
     lr_final: float = 1e-6
-    max_steps: int | None = None
+    max_steps: int | None = SPLATFACTO_SCHEDULE_STEPS
+    """nominal decay length (None, as in configs saved before schedules were nominal, reads as 30000)"""
     warmup_steps: int = 0
     lr_pre_warmup: float = 1e-8
 
-    def setup(self, optimizer: torch.optim.Optimizer, max_steps: int) -> torch.optim.lr_scheduler.LambdaLR:
-        steps = self.max_steps if self.max_steps is not None else max_steps
+    def setup(self, optimizer: torch.optim.Optimizer, steps_scale: float = 1.0) -> torch.optim.lr_scheduler.LambdaLR:
+        if steps_scale <= 0:
+            raise ValueError(f"steps_scale must be > 0, got {steps_scale}")
+        nominal = self.max_steps if self.max_steps is not None else SPLATFACTO_SCHEDULE_STEPS
+        steps = max(1, int(round(nominal * steps_scale)))
+        warmup = int(round(self.warmup_steps * steps_scale))
         return torch.optim.lr_scheduler.LambdaLR(
-            optimizer, ExponentialDecay(optimizer.defaults["lr"], self.lr_final, steps, self.warmup_steps, self.lr_pre_warmup)
+            optimizer, ExponentialDecay(optimizer.defaults["lr"], self.lr_final, steps, warmup, self.lr_pre_warmup)
         )
 
 
@@ -89,7 +102,9 @@ class OptimizersConfig:
     """Splatfacto 1.1.5's parameter groups; field names equal the keys of ``model.gauss_params``."""
 
     means: ParamGroupConfig = field(
-        default_factory=lambda: _group(1.6e-4, ExponentialDecaySchedulerConfig(lr_final=1.6e-6))
+        default_factory=lambda: _group(
+            1.6e-4, ExponentialDecaySchedulerConfig(lr_final=1.6e-6, max_steps=SPLATFACTO_SCHEDULE_STEPS)
+        )
     )
     features_dc: ParamGroupConfig = field(default_factory=lambda: _group(0.0025))
     features_rest: ParamGroupConfig = field(default_factory=lambda: _group(0.0025 / 20))
@@ -101,9 +116,10 @@ class OptimizersConfig:
         return ["means", "features_dc", "features_rest", "opacities", "scales", "quats"]
 
     def setup(
-        self, params: torch.nn.ParameterDict, max_steps: int
+        self, params: torch.nn.ParameterDict, steps_scale: float = 1.0
     ) -> tuple[dict[str, torch.optim.Optimizer], dict[str, torch.optim.lr_scheduler.LRScheduler]]:
-        """One Adam per group (keyed like ``params``) and the schedules of the groups that have one."""
+        """One Adam per group (keyed like ``params``) and the schedules of the groups that have one, their nominal
+        lengths multiplied by ``steps_scale`` (the model's)."""
         missing = [name for name in self.group_names() if name not in params]
         if missing:
             raise KeyError(f"optimizer groups {missing} have no parameter in the model (has {list(params.keys())})")
@@ -113,5 +129,5 @@ class OptimizersConfig:
             group: ParamGroupConfig = getattr(self, name)
             optimizers[name] = group.optimizer.setup([params[name]])
             if group.scheduler is not None:
-                schedulers[name] = group.scheduler.setup(optimizers[name], max_steps)
+                schedulers[name] = group.scheduler.setup(optimizers[name], steps_scale)
         return optimizers, schedulers

@@ -12,6 +12,7 @@ from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, CHECKPOINT_PATTERN,
 from kc_splatfacto.engine.config import load_config
 from kc_splatfacto.engine.pipeline import Pipeline
 from kc_splatfacto.engine.trainer import TrainerConfig
+from kc_splatfacto.errors import UserError
 
 
 @dataclass
@@ -38,6 +39,19 @@ class LoadedRun:
     checkpoint_path: Path
 
 
+def check_stored_scene(config: TrainerConfig, config_path: Path) -> None:
+    """A scene path stored relative (runs written before paths were stored absolute) that does not resolve from here
+    is a :class:`UserError` saying so, rather than a "check --data" message about a flag kc-eval does not have."""
+    parser = config.pipeline.datamanager.dataparser
+    data = getattr(parser, "data", None) if parser is not None else config.pipeline.datamanager.data
+    if data is None or str(data) == "demo" or Path(data).is_absolute() or Path(data).exists():
+        return
+    raise UserError(
+        f"{config_path} stores the scene as the relative path '{data}', which does not exist from {Path.cwd()}: run "
+        "from the folder kc-train was started in, or make 'data:' in that config.yml absolute"
+    )
+
+
 def load_run(config_path: Path | str, step: int | None = None, device: str | torch.device = "cpu") -> LoadedRun:
     """Rebuild the model of a run from its ``config.yml`` and a checkpoint (the newest when ``step`` is None)."""
     config_path = Path(config_path)
@@ -46,6 +60,7 @@ def load_run(config_path: Path | str, step: int | None = None, device: str | tor
     config = load_config(config_path)
     run_dir = config_path.parent
     checkpoint_path = find_checkpoint(run_dir / CHECKPOINT_DIR, step)
+    check_stored_scene(config, config_path)
     pipeline = config.pipeline.setup(device=device, seed=config.machine.seed)  # as the trainer builds it
     checkpoint = load_checkpoint(checkpoint_path, map_location=device)
     pipeline.load_state_dict({"model": checkpoint["model"]}, step=int(checkpoint["step"]))

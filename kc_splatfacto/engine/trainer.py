@@ -5,9 +5,10 @@ Step convention: ``step`` in checkpoints and ``metrics.jsonl`` is the number of 
 iteration ``model.step`` is the 0-based index of the step being taken, which every schedule reads.
 
 Stiff cases: a non-finite render, loss or gradient skips the step (no update, no density-control statistics; the
-learning-rate schedule still advances so the run keeps its length); Gaussians whose parameters are non-finite at the
-start of a step are removed (with their optimizer state) and that step is skipped. Each is a ``bad_step`` record. After ``max_consecutive_bad_steps`` in a row the state (still the last good
-one, since bad updates were never applied) is saved and :class:`TrainingDivergedError` raised. Ctrl-C (SIGINT) ends
+learning-rate schedule still advances so the run keeps its length); Gaussians whose parameters are non-finite are
+removed (with their optimizer state) and that step is skipped: found by the rasterizer while it reads them, and by a
+full scan every ``PARAMETER_SCAN_EVERY`` steps for values that render finitely. Each is a ``bad_step`` record. After ``max_consecutive_bad_steps`` in a row the state (still the last good
+one, since bad updates were never applied) is saved and :class:`TrainingDivergedError` raised. Ctrl-C (SIGINT) or SIGTERM ends
 the current step, saves a checkpoint and returns cleanly.
 
 Resume (``load_dir``) restores the Gaussians, every optimizer and schedule, the density-control statistics, the
@@ -20,8 +21,6 @@ import copy
 import datetime
 import math
 import random
-import signal
-import threading
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -31,14 +30,20 @@ from typing import Any
 import numpy as np
 import torch
 
-from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, find_checkpoint, load_checkpoint, save_checkpoint
+from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, save_checkpoint
 from kc_splatfacto.engine.config import LoggingConfig, MachineConfig, save_config
+from kc_splatfacto.engine.gradient_shares import gradient_shares
 from kc_splatfacto.engine.metrics_log import MetricsWriter, ProgressBar
 from kc_splatfacto.engine.optimizers import OptimizersConfig
 from kc_splatfacto.engine.pipeline import Pipeline, PipelineConfig
+from kc_splatfacto.engine.run_guard import announce_seed_points, plan_run, store_absolute_scene_path
+from kc_splatfacto.engine.signals import install_stop_handlers, restore_handlers
+from kc_splatfacto.render.errors import NonFiniteInputError
 
 GRAD_OVERFLOW = 1e18
 """a gradient this large would overflow Adam's squared-gradient average in float32 (1e36 < 3.4e38 just fits)"""
+PARAMETER_SCAN_EVERY = 100
+"""steps between full scans of the parameters for NaN/inf (the rasterizer reports what it reads every step)"""
 PHASES = ("render", "losses", "backward", "optimizer", "density_control")
 
 # a skipped (non-finite) step still advances the schedules, which torch reports as a misuse; it is deliberate here
@@ -77,6 +82,8 @@ class TrainerConfig:
     """resume from the newest checkpoint in this nerfstudio_models folder (or a run folder)"""
     load_step: int | None = None
     """resume from this step's checkpoint instead of the newest"""
+    resume_from_other_run: bool = False
+    """allow --load-dir of another scene's, method's or dataparser's run (continued in a new run folder)"""
     max_consecutive_bad_steps: int = 5
     """stop with an error after this many non-finite steps in a row (the last good state is saved)"""
     machine: MachineConfig = field(default_factory=MachineConfig)
@@ -108,6 +115,14 @@ class TrainerConfig:
         return Trainer(self)
 
 
+def _max_abs(tensor: torch.Tensor) -> torch.Tensor:
+    """max |x| (NaN if any x is NaN) in one read of the tensor: aminmax, not an |x| copy then a max."""
+    if tensor.numel() == 0:
+        return tensor.new_zeros(())
+    low, high = torch.aminmax(tensor)
+    return torch.maximum(-low, high)
+
+
 class TrainingDivergedError(RuntimeError):
     """Too many consecutive non-finite steps."""
 
@@ -134,6 +149,7 @@ class Trainer:
         self._stop_requested = False
         self._elapsed_offset = 0.0
         self._train_s = 0.0
+        self._side_s = 0.0  # logging work inside a step (gradient shares), kept out of train_s
         self._bad_in_a_row = 0
 
     @property
@@ -147,17 +163,14 @@ class Trainer:
     # ----------------------------------------------------------------------------------------------- set-up
     def setup(self) -> None:
         cfg = self.config
+        plan = plan_run(cfg, map_location=self.device)  # bad settings and foreign resumes refused before data loads
         cfg.machine.seed_everything()
         self.pipeline = cfg.pipeline.setup(device=self.device, seed=cfg.machine.seed)
+        announce_seed_points(self.datamanager, cfg.pipeline.model)
         self.model.train()
         self._build_optimizers()
-        checkpoint = None
-        if cfg.load_dir is not None:
-            path = find_checkpoint(cfg.load_dir, cfg.load_step)
-            checkpoint = load_checkpoint(path, map_location=self.device)
-            self.run_dir = path.parent.parent
-        else:
-            self.run_dir = self._new_run_dir()
+        checkpoint = plan.checkpoint
+        self.run_dir = plan.run_dir or self._new_run_dir()
         self.run_dir.mkdir(parents=True, exist_ok=True)
         save_config(recorded_config(cfg, self.datamanager.dataparser_config), self.run_dir / "config.yml")
         self.datamanager.save_dataparser_transform(self.run_dir / "dataparser_transforms.json")
@@ -175,8 +188,10 @@ class Trainer:
         return candidate
 
     def _build_optimizers(self) -> None:
+        # nominal schedules (nerfstudio's): steps_scale only, never max_num_iterations, so a short run is the first
+        # steps of the full one
         self.optimizers, self.schedulers = self.config.optimizers.setup(
-            self.model.gauss_params, max_steps=self.config.max_num_iterations
+            self.model.gauss_params, steps_scale=self.config.pipeline.model.steps_scale
         )
 
     # ----------------------------------------------------------------------------------------------- checkpoints
@@ -281,7 +296,7 @@ class Trainer:
         params = [(k, p) for k, p in self.model.gauss_params.items() if p.grad is not None]
         if not params:
             return None
-        peaks = torch.stack([p.grad.abs().amax() if p.grad.numel() else p.grad.new_zeros(()) for _, p in params])
+        peaks = torch.stack([_max_abs(p.grad) for _, p in params])
         if bool(torch.isfinite(peaks).all()) and float(peaks.max()) < GRAD_OVERFLOW:
             return None
         bad = [k for (k, _), v in zip(params, peaks.tolist()) if not (math.isfinite(v) and v < GRAD_OVERFLOW)]
@@ -293,22 +308,33 @@ class Trainer:
         model.step = step
         bad = None
         self._lap_start = time.perf_counter()
-        removed = model.remove_non_finite_gaussians(self.optimizers)
-        self._lap("optimizer")
+        removed = 0
+        if step % PARAMETER_SCAN_EVERY == 0:  # values that render finitely (an infinite opacity logit, ...)
+            removed = model.remove_non_finite_gaussians(self.optimizers)
+            self._lap("optimizer")
         if removed:  # the step is skipped before its training view is drawn: the view goes to the next step
             bad = f"non-finite parameters: {removed} Gaussians removed"
         else:
-            outputs, loss_dict, batch = self.pipeline.get_train_loss_dict(step, lap=self._lap)
-            if loss_dict is None:
-                bad = "non-finite render"
+            try:
+                outputs, loss_dict, batch = self.pipeline.get_train_loss_dict(step, lap=self._lap)
+            except NonFiniteInputError:  # the rasterizer found NaN/inf in what it read
+                removed = model.remove_non_finite_gaussians(self.optimizers)
+                if not removed:  # a non-finite camera, not a parameter: a real error
+                    raise
+                bad = f"non-finite parameters: {removed} Gaussians removed"
             else:
-                loss = torch.stack(list(loss_dict.values())).sum()
-                if not bool(torch.isfinite(loss)):
-                    bad = "non-finite loss (" + ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in loss_dict.items()) + ")"
+                if loss_dict is None:
+                    bad = "non-finite render"
                 else:
-                    loss.backward()
-                    self._lap("backward")
-                    bad = self._grad_problem()
+                    loss = torch.stack(list(loss_dict.values())).sum()
+                    if not bool(torch.isfinite(loss)):
+                        bad = "non-finite loss (" + ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in loss_dict.items()) + ")"
+                    else:
+                        self._log_gradient_shares(step + 1, loss_dict, outputs["rgb"])
+                        self._lap_start = time.perf_counter()  # the shares are logging, not a phase of the step
+                        loss.backward()
+                        self._lap("backward")
+                        bad = self._grad_problem()
         if bad is None:
             for optimizer in self.optimizers.values():
                 optimizer.step()
@@ -340,8 +366,7 @@ class Trainer:
         # (no warnings.catch_warnings around the loop: mutating filters re-enables once-only warnings every step)
         self.writer = MetricsWriter(self.run_dir / "metrics.jsonl")
         self._t0 = time.perf_counter()
-        in_main_thread = threading.current_thread() is threading.main_thread()
-        previous_handler = signal.signal(signal.SIGINT, self._on_sigint) if in_main_thread else None
+        previous_handlers = install_stop_handlers(self._on_sigint)  # SIGINT and SIGTERM: save and return
         bar = ProgressBar(cfg.max_num_iterations, self.start_step, enabled=cfg.logging.progress_bar)
         step = self.start_step
         try:
@@ -351,7 +376,8 @@ class Trainer:
             while step < cfg.max_num_iterations and not self._stop_requested:
                 t_step = time.perf_counter()
                 losses = self.train_iteration(step)
-                self._train_s += time.perf_counter() - t_step
+                self._train_s += time.perf_counter() - t_step - self._side_s
+                self._side_s = 0.0
                 step += 1
                 if losses and step % cfg.logging.steps_per_log == 0:
                     self._log_train(step, losses)
@@ -369,10 +395,19 @@ class Trainer:
             bar.update(step, losses.get("loss") if losses else None, self.model.num_points, force=True)
             bar.close()
         finally:
-            if previous_handler is not None:
-                signal.signal(signal.SIGINT, previous_handler)
+            restore_handlers(previous_handlers)
             self.writer.close()
         return self.run_dir
+
+    def _log_gradient_shares(self, step: int, loss_dict: dict[str, torch.Tensor], image: torch.Tensor) -> None:
+        every = self.config.logging.steps_per_gradient_shares
+        if every <= 0 or step % every != 0:
+            return
+        start = time.perf_counter()
+        record = {"kind": "gradient_shares", "step": step, "elapsed_s": self._elapsed(), "train_s": self._train_s,
+                  "reference": "main_loss", **gradient_shares(loss_dict, image)}
+        self.writer.write(record)
+        self._side_s += time.perf_counter() - start
 
     def _log_train(self, step: int, losses: dict[str, float]) -> None:
         record: dict[str, Any] = {"kind": "train", "step": step, "elapsed_s": self._elapsed(), "train_s": self._train_s}
@@ -387,7 +422,9 @@ class Trainer:
 
 def recorded_config(config: TrainerConfig, dataparser_config: Any) -> TrainerConfig:
     """What ``config.yml`` records: the user's config with the dataparser it resolved to (so the run can be rebuilt
-    whatever the detection would say later), as a copy: the user's config object is left as given."""
+    whatever the detection would say later) and its scene paths made absolute (so kc-eval / kc-render work from any
+    folder), as a copy: the user's config object is left as given."""
     recorded = copy.deepcopy(config)
-    recorded.pipeline.datamanager.dataparser = dataparser_config
+    recorded.pipeline.datamanager.dataparser = copy.deepcopy(dataparser_config)
+    store_absolute_scene_path(recorded)
     return recorded

@@ -1,5 +1,6 @@
 """Render layer: gsplat-compatible ``rasterization()`` with reference (torch), cpu (compiled) and gsplat backends."""
 
+from .errors import NonFiniteInputError
 from .projection import (
     Projection,
     fully_fused_projection,
@@ -15,6 +16,7 @@ from .tiles import TileIntersections, isect_offset_encode, isect_tiles, tile_gri
 
 __all__ = [
     "BACKENDS",
+    "NonFiniteInputError",
     "RENDER_MODES",
     "Projection",
     "TileIntersections",

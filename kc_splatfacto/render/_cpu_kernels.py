@@ -15,6 +15,11 @@ Layout shared by the kernels (all arrays C-contiguous numpy):
   intersection (each intersection belongs to exactly one tile, so no write races), reduced to Gaussians by
   ``reduce_isect_grads`` in a fixed serial order (deterministic).
 
+Kernel families: the 4x4-block kernels (``*_blocks``, 16 px tiles: ``constants.BLOCK_TILE_SIZE``) and the scalar
+kernels (any other tile size). Both evaluate a Gaussian at a pixel through ``_gaussian_sigma`` and ``_alpha_at``
+(the branch-free float32 ``exp_neg``), so they keep and skip the same (pixel, Gaussian) pairs; their colours differ
+only by float32 (blocks) vs float64 (scalar forward) accumulation, up to about 2.4e-7.
+
 The gsplat constants (alpha clamp, alpha threshold, transmittance threshold) are kernel ARGUMENTS, not globals:
 numba freezes globals into its on-disk cache, and a cache keyed on this file alone would not see a change in
 ``constants.py``.
@@ -27,12 +32,19 @@ import math
 import numpy as np
 from numba import njit, prange
 
+# Layout constants (named once in constants.py). They shape the block kernels' arrays, so they are compile-time
+# globals: numba's cache is keyed on THIS file, so after changing them there, delete render/__pycache__.
+from .constants import BLOCK_SIZE, BLOCK_TILE_SIZE, BLOCKS_PER_TILE, LANES
+
 # packed row: x, y, conic a, b, c, opacity, extent x, extent y, sigma cut, then D colour channels
+PACK_X, PACK_Y, PACK_CONIC_A, PACK_CONIC_B, PACK_CONIC_C, PACK_OPACITY = 0, 1, 2, 3, 4, 5
+PACK_EXTENT_X, PACK_EXTENT_Y, PACK_SIGMA_CUT = 6, 7, 8
 PACK_HEAD = 9
 # Pre-test margin on sigma: beyond log(opacity / threshold) + margin, alpha < threshold whatever expf rounds to,
 # so such a pixel is skipped without calling exp (exactly as the full test would skip it).
 SIGMA_CUT_MARGIN = 1e-3
 # gradient row: v_x, v_y, v_conic a, b, c, v_opacity, |v_x|, |v_y| summed per pixel (absgrad), then D v_colors
+GRAD_X, GRAD_Y, GRAD_CONIC_A, GRAD_CONIC_B, GRAD_CONIC_C, GRAD_OPACITY, GRAD_ABS_X, GRAD_ABS_Y = 0, 1, 2, 3, 4, 5, 6, 7
 GRAD_HEAD = 8
 
 _F32 = np.float32
@@ -55,12 +67,12 @@ def pack_isects(means2d, conics, opacities, colors, flatten_ids, alpha_threshold
         b = conics[g, 1]
         c = conics[g, 2]
         o = opacities[g]
-        packed[m, 0] = means2d[g, 0]
-        packed[m, 1] = means2d[g, 1]
-        packed[m, 2] = a
-        packed[m, 3] = b
-        packed[m, 4] = c
-        packed[m, 5] = o
+        packed[m, PACK_X] = means2d[g, 0]
+        packed[m, PACK_Y] = means2d[g, 1]
+        packed[m, PACK_CONIC_A] = a
+        packed[m, PACK_CONIC_B] = b
+        packed[m, PACK_CONIC_C] = c
+        packed[m, PACK_OPACITY] = o
         # float64 on purpose: the extent must never be smaller than the float32 test it stands in for
         a64 = np.float64(a)
         b64 = np.float64(b)
@@ -79,11 +91,38 @@ def pack_isects(means2d, conics, opacities, colors, flatten_ids, alpha_threshold
             else:
                 ex = np.inf
                 ey = np.inf
-        packed[m, 6] = ex
-        packed[m, 7] = ey
-        packed[m, 8] = sigma_cut
+        packed[m, PACK_EXTENT_X] = ex
+        packed[m, PACK_EXTENT_Y] = ey
+        packed[m, PACK_SIGMA_CUT] = sigma_cut
         for k in range(n_channels):
             packed[m, PACK_HEAD + k] = colors[g, k]
+
+
+@njit(inline="always")
+def _gaussian_sigma(ca, cb, cc, dx, dy):
+    """``sigma = 0.5 (a dx^2 + c dy^2) + b dx dy`` (float32) for the offset ``(dx, dy) = mean - pixel centre`` and the
+    conic ``(a, b, c)``: the Gaussian's exponent at a pixel (gsplat's per-pixel evaluation). Every kernel uses it."""
+    return _F32(0.5) * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+
+
+@njit(inline="always")
+def _alpha_at(opacity, sigma, max_alpha):
+    """``(exp(-sigma), alpha = min(max_alpha, opacity exp(-sigma)))`` with the branch-free float32 ``exp_neg``, the
+    same in the scalar and the block kernels (so both families take the same keep/skip decisions)."""
+    vis = exp_neg(sigma)
+    return vis, min(max_alpha, opacity * vis)
+
+
+@njit(inline="always")
+def _tile_geometry(tile, tiles_per_image, tile_width, tile_size, image_width, image_height):
+    """Camera and pixel box ``[x0, x1) x [y0, y1)`` of flat tile index ``tile`` (camera-major, row-major tiles)."""
+    cam = tile // tiles_per_image
+    tile_in_image = tile - cam * tiles_per_image
+    tile_y = tile_in_image // tile_width
+    tile_x = tile_in_image - tile_y * tile_width
+    x0 = tile_x * tile_size
+    y0 = tile_y * tile_size
+    return cam, x0, y0, min(x0 + tile_size, image_width), min(y0 + tile_size, image_height)
 
 
 @njit(inline="always")
@@ -168,17 +207,9 @@ def rasterize_fwd(
     n_channels = packed.shape[1] - PACK_HEAD
     tiles_per_image = tile_height * tile_width
     n_tiles = n_cameras * tiles_per_image
-    half = _F32(0.5)
     one = _F32(1.0)
     for tile in prange(n_tiles):
-        cam = tile // tiles_per_image
-        tile_in_image = tile - cam * tiles_per_image
-        tile_y = tile_in_image // tile_width
-        tile_x = tile_in_image - tile_y * tile_width
-        x0 = tile_x * tile_size
-        y0 = tile_y * tile_size
-        x1 = min(x0 + tile_size, image_width)
-        y1 = min(y0 + tile_size, image_height)
+        cam, x0, y0, x1, y1 = _tile_geometry(tile, tiles_per_image, tile_width, tile_size, image_width, image_height)
         span_x = x1 - x0
         n_pix = span_x * (y1 - y0)
         start = tile_offsets[tile]
@@ -193,15 +224,15 @@ def rasterize_fwd(
         for m in range(start, end):
             if n_done == n_pix:
                 break
-            gx = packed[m, 0]
-            gy = packed[m, 1]
-            ca = packed[m, 2]
-            cb = packed[m, 3]
-            cc = packed[m, 4]
-            op = packed[m, 5]
-            sigma_cut = packed[m, 8]
-            j_first, j_end = _pixel_range(gx, packed[m, 6], pixel_offset, x0, x1)
-            i_first, i_end = _pixel_range(gy, packed[m, 7], pixel_offset, y0, y1)
+            gx = packed[m, PACK_X]
+            gy = packed[m, PACK_Y]
+            ca = packed[m, PACK_CONIC_A]
+            cb = packed[m, PACK_CONIC_B]
+            cc = packed[m, PACK_CONIC_C]
+            op = packed[m, PACK_OPACITY]
+            sigma_cut = packed[m, PACK_SIGMA_CUT]
+            j_first, j_end = _pixel_range(gx, packed[m, PACK_EXTENT_X], pixel_offset, x0, x1)
+            i_first, i_end = _pixel_range(gy, packed[m, PACK_EXTENT_Y], pixel_offset, y0, y1)
             bounded, k_cut, k_det, k_b = _ellipse_rows(ca, cb, cc, sigma_cut)
             for i in range(i_first, i_end):
                 dy = gy - (_F32(i) + pixel_offset)
@@ -212,10 +243,10 @@ def rasterize_fwd(
                     if done[p]:
                         continue
                     dx = gx - (_F32(j) + pixel_offset)
-                    sigma = half * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                    sigma = _gaussian_sigma(ca, cb, cc, dx, dy)
                     if sigma > sigma_cut:
                         continue
-                    alpha = min(max_alpha, op * math.exp(-sigma))
+                    _, alpha = _alpha_at(op, sigma, max_alpha)
                     if sigma < 0 or alpha < alpha_threshold:
                         continue
                     next_T = T[p] * (one - alpha)
@@ -271,16 +302,8 @@ def rasterize_bwd(
     n_channels = packed.shape[1] - PACK_HEAD
     tiles_per_image = tile_height * tile_width
     n_tiles = n_cameras * tiles_per_image
-    half = _F32(0.5)
     for tile in prange(n_tiles):
-        cam = tile // tiles_per_image
-        tile_in_image = tile - cam * tiles_per_image
-        tile_y = tile_in_image // tile_width
-        tile_x = tile_in_image - tile_y * tile_width
-        x0 = tile_x * tile_size
-        y0 = tile_y * tile_size
-        x1 = min(x0 + tile_size, image_width)
-        y1 = min(y0 + tile_size, image_height)
+        cam, x0, y0, x1, y1 = _tile_geometry(tile, tiles_per_image, tile_width, tile_size, image_width, image_height)
         span_x = x1 - x0
         n_pix = span_x * (y1 - y0)
         start = tile_offsets[tile]
@@ -315,15 +338,15 @@ def rasterize_bwd(
 
         v_rgb = np.zeros(n_channels, dtype=np.float64)
         for m in range(min(tile_last, end - 1), start - 1, -1):
-            gx = packed[m, 0]
-            gy = packed[m, 1]
-            ca = packed[m, 2]
-            cb = packed[m, 3]
-            cc = packed[m, 4]
-            op = packed[m, 5]
-            sigma_cut = packed[m, 8]
-            j_first, j_end = _pixel_range(gx, packed[m, 6], pixel_offset, x0, x1)
-            i_first, i_end = _pixel_range(gy, packed[m, 7], pixel_offset, y0, y1)
+            gx = packed[m, PACK_X]
+            gy = packed[m, PACK_Y]
+            ca = packed[m, PACK_CONIC_A]
+            cb = packed[m, PACK_CONIC_B]
+            cc = packed[m, PACK_CONIC_C]
+            op = packed[m, PACK_OPACITY]
+            sigma_cut = packed[m, PACK_SIGMA_CUT]
+            j_first, j_end = _pixel_range(gx, packed[m, PACK_EXTENT_X], pixel_offset, x0, x1)
+            i_first, i_end = _pixel_range(gy, packed[m, PACK_EXTENT_Y], pixel_offset, y0, y1)
             bounded, k_cut, k_det, k_b = _ellipse_rows(ca, cb, cc, sigma_cut)
             for k in range(n_channels):
                 v_rgb[k] = 0.0
@@ -344,11 +367,10 @@ def rasterize_bwd(
                     if m > last[p]:
                         continue
                     dx = gx - (_F32(j) + pixel_offset)
-                    sigma = half * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                    sigma = _gaussian_sigma(ca, cb, cc, dx, dy)
                     if sigma > sigma_cut:
                         continue
-                    vis = math.exp(-sigma)
-                    alpha = min(max_alpha, op * vis)
+                    vis, alpha = _alpha_at(op, sigma, max_alpha)
                     if sigma < 0 or alpha < alpha_threshold:
                         continue
                     ra = 1.0 / (1.0 - np.float64(alpha))
@@ -376,14 +398,14 @@ def rasterize_bwd(
                         v_x_abs += abs(gxp)
                         v_y_abs += abs(gyp)
                         v_op += np.float64(vis) * v_alpha
-            isect_grads[m, 0] = v_x
-            isect_grads[m, 1] = v_y
-            isect_grads[m, 2] = v_ca
-            isect_grads[m, 3] = v_cb
-            isect_grads[m, 4] = v_cc
-            isect_grads[m, 5] = v_op
-            isect_grads[m, 6] = v_x_abs
-            isect_grads[m, 7] = v_y_abs
+            isect_grads[m, GRAD_X] = v_x
+            isect_grads[m, GRAD_Y] = v_y
+            isect_grads[m, GRAD_CONIC_A] = v_ca
+            isect_grads[m, GRAD_CONIC_B] = v_cb
+            isect_grads[m, GRAD_CONIC_C] = v_cc
+            isect_grads[m, GRAD_OPACITY] = v_op
+            isect_grads[m, GRAD_ABS_X] = v_x_abs
+            isect_grads[m, GRAD_ABS_Y] = v_y_abs
             for k in range(n_channels):
                 isect_grads[m, GRAD_HEAD + k] = v_rgb[k]
 
@@ -404,7 +426,6 @@ def reduce_isect_grads(isect_grads, flatten_ids, n_gaussians, gaussian_grads):
 # stop) are the same per-pixel tests as the scalar kernels above.
 # ------------------------------------------------------------------------------------------------------------------
 
-LANES = 16
 _LOG2E = np.float32(1.4426950408889634)
 # ln 2 split in a high part exact in float32 and a low remainder (Cody-Waite range reduction)
 _LN2_HI = np.float32(0.693359375)
@@ -449,24 +470,6 @@ def exp_neg(s):
     return p * (_F32(0.5) if c else _F32(1.0))
 
 
-@njit(cache=True, fastmath=False)
-def exp_neg_array(s, out):
-    """``out[i] = exp_neg(s[i])`` (for tests)."""
-    for i in range(s.shape[0]):
-        out[i] = exp_neg(s[i])
-
-
-@njit(inline="always")
-def _tile_geometry(tile, tiles_per_image, tile_width, image_width, image_height):
-    cam = tile // tiles_per_image
-    tile_in_image = tile - cam * tiles_per_image
-    tile_y = tile_in_image // tile_width
-    tile_x = tile_in_image - tile_y * tile_width
-    x0 = tile_x * LANES
-    y0 = tile_y * LANES
-    return cam, x0, y0, min(x0 + LANES, image_width), min(y0 + LANES, image_height)
-
-
 # ------------------------------------------------------------------------------------------------------------------
 # 4x4-block kernels for 16 px tiles: a tile is 16 blocks of 4x4 pixels and the 16 pixels of one block are the 16
 # branch-free lanes. A Gaussian visits only the blocks that its ellipse's row spans touch (the union of the spans of
@@ -475,7 +478,7 @@ def _tile_geometry(tile, tiles_per_image, tile_width, image_width, image_height)
 # Per-pixel arithmetic and tests are exactly those of the scalar kernels above.
 # ------------------------------------------------------------------------------------------------------------------
 
-BLOCK = 4
+BLOCK = BLOCK_SIZE
 
 
 @njit(inline="always")
@@ -529,19 +532,19 @@ def rasterize_fwd_blocks(
     n_channels = packed.shape[1] - PACK_HEAD
     tiles_per_image = tile_height * tile_width
     n_tiles = n_cameras * tiles_per_image
-    half = _F32(0.5)
     one = _F32(1.0)
     zero = _F32(0.0)
     for tile in prange(n_tiles):
-        cam, x0, y0, x1, y1 = _tile_geometry(tile, tiles_per_image, tile_width, image_width, image_height)
+        cam, x0, y0, x1, y1 = _tile_geometry(tile, tiles_per_image, tile_width, BLOCK_TILE_SIZE, image_width,
+                                               image_height)
         start = tile_offsets[tile]
         end = tile_offsets[tile + 1] if tile + 1 < n_tiles else n_isects
-        T = np.ones((LANES, LANES), dtype=np.float32)
-        acc = np.zeros((n_channels, LANES, LANES), dtype=np.float32)
-        last = np.full((LANES, LANES), -1, dtype=np.int32)
-        count = np.zeros((LANES, LANES), dtype=np.float32)
+        T = np.ones((BLOCKS_PER_TILE, LANES), dtype=np.float32)
+        acc = np.zeros((n_channels, BLOCKS_PER_TILE, LANES), dtype=np.float32)
+        last = np.full((BLOCKS_PER_TILE, LANES), -1, dtype=np.int32)
+        count = np.zeros((BLOCKS_PER_TILE, LANES), dtype=np.float32)
         # 1 while the pixel composites; 0 once done (and for lanes outside the image)
-        live = np.zeros((LANES, LANES), dtype=np.float32)
+        live = np.zeros((BLOCKS_PER_TILE, LANES), dtype=np.float32)
         for r in range(y1 - y0):
             for c in range(x1 - x0):
                 live[(r // BLOCK) * BLOCK + c // BLOCK, (r % BLOCK) * BLOCK + c % BLOCK] = one
@@ -550,22 +553,22 @@ def rasterize_fwd_blocks(
         for m in range(start, end):
             if (m - start) % LANES == LANES - 1:
                 n_live = 0
-                for b in range(LANES):
+                for b in range(BLOCKS_PER_TILE):
                     for lane in range(LANES):
                         n_live += 1 if live[b, lane] > zero else 0
                 if n_live == 0:
                     break
-            gx = packed[m, 0]
-            gy = packed[m, 1]
-            ca = packed[m, 2]
-            cb = packed[m, 3]
-            cc = packed[m, 4]
-            op = packed[m, 5]
-            sigma_cut = packed[m, 8]
-            j_first, j_end = _pixel_range(gx, packed[m, 6], pixel_offset, x0, x1)
+            gx = packed[m, PACK_X]
+            gy = packed[m, PACK_Y]
+            ca = packed[m, PACK_CONIC_A]
+            cb = packed[m, PACK_CONIC_B]
+            cc = packed[m, PACK_CONIC_C]
+            op = packed[m, PACK_OPACITY]
+            sigma_cut = packed[m, PACK_SIGMA_CUT]
+            j_first, j_end = _pixel_range(gx, packed[m, PACK_EXTENT_X], pixel_offset, x0, x1)
             if j_end <= j_first:
                 continue
-            i_first, i_end = _pixel_range(gy, packed[m, 7], pixel_offset, y0, y1)
+            i_first, i_end = _pixel_range(gy, packed[m, PACK_EXTENT_Y], pixel_offset, y0, y1)
             if i_end <= i_first:
                 continue
             bounded, k_cut, k_det, k_b = _ellipse_rows(ca, cb, cc, sigma_cut)
@@ -581,8 +584,8 @@ def rasterize_fwd_blocks(
                     for lane in range(LANES):
                         dx = gx - px[bc, lane]
                         dy = gy - py[br, lane]
-                        sigma = half * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-                        alpha = min(max_alpha, op * exp_neg(sigma))
+                        sigma = _gaussian_sigma(ca, cb, cc, dx, dy)
+                        _, alpha = _alpha_at(op, sigma, max_alpha)
                         t = T[b, lane]
                         next_t = t * (one - alpha)
                         ok = ((sigma >= zero) & (sigma <= sigma_cut) & (alpha >= alpha_threshold)
@@ -644,16 +647,17 @@ def rasterize_bwd_blocks(
     one = _F32(1.0)
     zero = _F32(0.0)
     for tile in prange(n_tiles):
-        cam, x0, y0, x1, y1 = _tile_geometry(tile, tiles_per_image, tile_width, image_width, image_height)
+        cam, x0, y0, x1, y1 = _tile_geometry(tile, tiles_per_image, tile_width, BLOCK_TILE_SIZE, image_width,
+                                               image_height)
         start = tile_offsets[tile]
         end = tile_offsets[tile + 1] if tile + 1 < n_tiles else n_isects
         if end <= start:
             continue
-        T = np.ones((LANES, LANES), dtype=np.float32)
-        last = np.full((LANES, LANES), -1, dtype=np.int32)
-        v_c = np.zeros((n_channels, LANES, LANES), dtype=np.float32)
-        alpha_term = np.zeros((LANES, LANES), dtype=np.float32)
-        buffer = np.zeros((n_channels, LANES, LANES), dtype=np.float32)
+        T = np.ones((BLOCKS_PER_TILE, LANES), dtype=np.float32)
+        last = np.full((BLOCKS_PER_TILE, LANES), -1, dtype=np.int32)
+        v_c = np.zeros((n_channels, BLOCKS_PER_TILE, LANES), dtype=np.float32)
+        alpha_term = np.zeros((BLOCKS_PER_TILE, LANES), dtype=np.float32)
+        buffer = np.zeros((n_channels, BLOCKS_PER_TILE, LANES), dtype=np.float32)
         tile_last = -1
         for i in range(y0, y1):
             for j in range(x0, x1):
@@ -681,17 +685,17 @@ def rasterize_bwd_blocks(
         sums = np.empty((GRAD_HEAD + n_channels, LANES), dtype=np.float32)
         pair_sums = np.empty(LANES // 2, dtype=np.float64)
         for m in range(min(tile_last, end - 1), start - 1, -1):
-            gx = packed[m, 0]
-            gy = packed[m, 1]
-            ca = packed[m, 2]
-            cb = packed[m, 3]
-            cc = packed[m, 4]
-            op = packed[m, 5]
-            sigma_cut = packed[m, 8]
-            j_first, j_end = _pixel_range(gx, packed[m, 6], pixel_offset, x0, x1)
+            gx = packed[m, PACK_X]
+            gy = packed[m, PACK_Y]
+            ca = packed[m, PACK_CONIC_A]
+            cb = packed[m, PACK_CONIC_B]
+            cc = packed[m, PACK_CONIC_C]
+            op = packed[m, PACK_OPACITY]
+            sigma_cut = packed[m, PACK_SIGMA_CUT]
+            j_first, j_end = _pixel_range(gx, packed[m, PACK_EXTENT_X], pixel_offset, x0, x1)
             if j_end <= j_first:
                 continue
-            i_first, i_end = _pixel_range(gy, packed[m, 7], pixel_offset, y0, y1)
+            i_first, i_end = _pixel_range(gy, packed[m, PACK_EXTENT_Y], pixel_offset, y0, y1)
             if i_end <= i_first:
                 continue
             bounded, k_cut, k_det, k_b = _ellipse_rows(ca, cb, cc, sigma_cut)
@@ -708,9 +712,8 @@ def rasterize_bwd_blocks(
                     for lane in range(LANES):
                         dx = gx - px[bc, lane]
                         dy = gy - py[br, lane]
-                        sigma = half * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-                        vis = exp_neg(sigma)
-                        alpha = min(max_alpha, op * vis)
+                        sigma = _gaussian_sigma(ca, cb, cc, dx, dy)
+                        vis, alpha = _alpha_at(op, sigma, max_alpha)
                         valid = ((mi <= last[b, lane]) & (sigma >= zero) & (sigma <= sigma_cut)
                                  & (alpha >= alpha_threshold))
                         ra = one / (one - alpha)

@@ -15,10 +15,11 @@ import torch
 from torch import Tensor
 
 from .constants import EPS2D, EXPECTED_DEPTH_ALPHA_MIN, FAR_PLANE, NEAR_PLANE, TILE_SIZE
+from .errors import NonFiniteInputError, non_finite_message
 from .projection import fully_fused_projection
 from .rasterize_torch import rasterize_to_pixels_torch
 from .sh import sh_to_rgb
-from .tiles import isect_offset_encode, isect_tiles, tile_grid
+from .tiles import bin_tiles_cpu, isect_offset_encode, isect_tiles, tile_grid
 
 RenderMode = Literal["RGB", "D", "ED", "RGB+D", "RGB+ED"]
 RasterizeMode = Literal["classic", "antialiased"]
@@ -95,6 +96,16 @@ def resolve_backend(backend: str, device: torch.device) -> str:
     return backend
 
 
+def _match_numba_threads() -> None:
+    """Run numba's parallel loops on as many threads as torch uses (never more), so the two pools, which take turns
+    within a step, do not oversubscribe the cores; both follow ``torch.set_num_threads``."""
+    import numba
+
+    wanted = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
+    if numba.get_num_threads() != wanted:
+        numba.set_num_threads(wanted)
+
+
 def _check_inputs(
     means: Tensor,
     quats: Tensor,
@@ -109,7 +120,10 @@ def _check_inputs(
     backgrounds: Optional[Tensor],
     render_mode: str,
     rasterize_mode: str,
+    check_finite: bool = True,
 ) -> None:
+    """Shapes and options; with ``check_finite`` also a full NaN/inf pass over every input (the torch reference's
+    path; the compiled path finds non-finite values inside its projection kernel instead)."""
     if means.dim() != 2 or means.shape[-1] != 3:
         raise ValueError(f"means must be [N, 3], got {tuple(means.shape)}")
     n = means.shape[0]
@@ -147,13 +161,14 @@ def _check_inputs(
         raise ValueError(f"rasterize_mode must be one of {RASTERIZE_MODES}, got {rasterize_mode!r}")
     if backgrounds is not None and (backgrounds.dim() != 2 or backgrounds.shape[0] != c):
         raise ValueError(f"backgrounds must be [C, D] with C={c}, got {tuple(backgrounds.shape)}")
+    if not check_finite:
+        return
     for name, tensor in (
         ("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
         ("colors", colors), ("viewmats", viewmats), ("Ks", Ks),
     ):
         if not torch.isfinite(tensor).all():
-            bad = int((~torch.isfinite(tensor)).sum())
-            raise ValueError(f"rasterization: {name} holds {bad} NaN/inf value(s); fix the parameters (or their optimizer)")
+            raise NonFiniteInputError(non_finite_message(name, tensor), (name,))
 
 
 def rasterization(
@@ -212,32 +227,50 @@ def rasterization(
         meta["backend"] = resolved
         return render_colors, render_alphas, meta
 
+    fused = resolved == "cpu" and means.dtype in (torch.float32, torch.float64)
     _check_inputs(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds, render_mode,
-        rasterize_mode,
+        rasterize_mode, check_finite=not fused,
     )
     width, height = int(width), int(height)
     n_cameras = viewmats.shape[0]
-    proj = fully_fused_projection(
-        means, quats, scales, viewmats, Ks, width, height,
-        opacities=opacities, eps2d=eps2d, near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip,
-        calc_compensations=(rasterize_mode == "antialiased"),
-    )
-    radii, means2d, depths, conics = proj.radii, proj.means2d, proj.depths, proj.conics
-    opacities_c = opacities[None, :].expand(n_cameras, -1)
-    if proj.compensations is not None:
-        opacities_c = opacities_c * proj.compensations
+    if fused:
+        from .project_cpu import project_and_shade_cpu
+
+        _match_numba_threads()
+        if sh_degree is None and not torch.isfinite(colors).all():
+            raise NonFiniteInputError(non_finite_message("colors", colors), ("colors",))
+        splats = project_and_shade_cpu(
+            means, quats, scales, opacities, colors if sh_degree is not None else None, viewmats, Ks, width, height,
+            sh_degree=sh_degree, eps2d=eps2d, near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip,
+            antialiased=(rasterize_mode == "antialiased"),
+        )
+        radii, means2d, depths, conics, opacities_c = (splats.radii, splats.means2d, splats.depths, splats.conics,
+                                                        splats.opacities)
+        if sh_degree is None:
+            colors_c = colors if colors.dim() == 3 else colors[None].expand(n_cameras, -1, -1)
+        else:
+            colors_c = splats.colors
+    else:
+        proj = fully_fused_projection(
+            means, quats, scales, viewmats, Ks, width, height,
+            opacities=opacities, eps2d=eps2d, near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip,
+            calc_compensations=(rasterize_mode == "antialiased"),
+        )
+        radii, means2d, depths, conics = proj.radii, proj.means2d, proj.depths, proj.conics
+        opacities_c = opacities[None, :].expand(n_cameras, -1)
+        if proj.compensations is not None:
+            opacities_c = opacities_c * proj.compensations
+        visible = (radii > 0).all(dim=-1)  # [C, N]
+        if sh_degree is None:
+            colors_c = colors if colors.dim() == 3 else colors[None].expand(n_cameras, -1, -1)
+        else:
+            camtoworlds = torch.linalg.inv(viewmats)
+            dirs = means[None, :, :] - camtoworlds[:, None, :3, 3]  # [C, N, 3]
+            shs = colors if colors.dim() == 4 else colors[None].expand(n_cameras, -1, -1, -1)
+            colors_c = sh_to_rgb(sh_degree, dirs, shs, masks=visible)
     if means2d.requires_grad:
         means2d.retain_grad()  # density control reads meta["means2d"].grad
-
-    visible = (radii > 0).all(dim=-1)  # [C, N]
-    if sh_degree is None:
-        colors_c = colors if colors.dim() == 3 else colors[None].expand(n_cameras, -1, -1)
-    else:
-        camtoworlds = torch.linalg.inv(viewmats)
-        dirs = means[None, :, :] - camtoworlds[:, None, :3, 3]  # [C, N, 3]
-        shs = colors if colors.dim() == 4 else colors[None].expand(n_cameras, -1, -1, -1)
-        colors_c = sh_to_rgb(sh_degree, dirs, shs, masks=visible)
 
     if render_mode in ("RGB+D", "RGB+ED"):
         colors_c = torch.cat([colors_c, depths[..., None]], dim=-1)
@@ -253,8 +286,13 @@ def rasterization(
         )
 
     tile_width, tile_height = tile_grid(width, height, tile_size)
-    tiles_per_gauss, isect_ids, flatten_ids = isect_tiles(means2d, radii, depths, tile_size, tile_width, tile_height)
-    isect_offsets = isect_offset_encode(isect_ids, n_cameras, tile_width, tile_height)
+    if fused:
+        tiles_per_gauss, isect_ids, flatten_ids, isect_offsets = bin_tiles_cpu(
+            means2d, radii, depths, tile_size, tile_width, tile_height)
+    else:
+        tiles_per_gauss, isect_ids, flatten_ids = isect_tiles(means2d, radii, depths, tile_size, tile_width,
+                                                              tile_height)
+        isect_offsets = isect_offset_encode(isect_ids, n_cameras, tile_width, tile_height)
 
     rasterize = rasterize_to_pixels_torch if resolved == "torch" else _cpu_rasterizer()
     render_colors, render_alphas = rasterize(

@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from . import _cpu_kernels as K
-from .constants import ALPHA_CLAMP, ALPHA_THRESHOLD, PIXEL_CENTER_OFFSET, TRANSMITTANCE_MIN
+from .constants import ALPHA_CLAMP, ALPHA_THRESHOLD, BLOCK_TILE_SIZE, PIXEL_CENTER_OFFSET, TRANSMITTANCE_MIN
 
 __all__ = ["rasterize_to_pixels_cpu"]
 
@@ -92,7 +92,7 @@ class _RasterizeToPixelsCPU(torch.autograd.Function):
         last_ids = np.empty((C, image_height, image_width), np.int32)
         n_contrib = np.empty((C, image_height, image_width), np.int32)
         with numba.parallel_chunksize(TILES_PER_CHUNK):
-            if tile_size == K.LANES:
+            if tile_size == BLOCK_TILE_SIZE:
                 K.rasterize_fwd_blocks(packed, offsets, bg, C, image_height, image_width, tile_h, tile_w, pixel_offset,
                                        max_alpha, alpha_threshold, transmittance_threshold, render_colors, T_final,
                                        last_ids, n_contrib)
@@ -126,7 +126,7 @@ class _RasterizeToPixelsCPU(torch.autograd.Function):
 
         isect_grads = np.zeros((ids.shape[0], K.GRAD_HEAD + D), np.float32)
         with numba.parallel_chunksize(TILES_PER_CHUNK):
-            if tile_size == K.LANES:
+            if tile_size == BLOCK_TILE_SIZE:
                 K.rasterize_bwd_blocks(packed, offsets, bg, T_final, last_ids, v_colors_out, v_alphas_out, C,
                                        image_height, image_width, tile_h, tile_w, pixel_offset, max_alpha,
                                        alpha_threshold, isect_grads)
@@ -139,12 +139,12 @@ class _RasterizeToPixelsCPU(torch.autograd.Function):
 
         dtype = ctx.means2d.dtype
         grads_t = torch.from_numpy(grads).to(dtype).reshape(C, N, K.GRAD_HEAD + D)
-        v_means2d = grads_t[..., 0:2].contiguous()
-        v_conics = grads_t[..., 2:5].contiguous()
-        v_opacities = grads_t[..., 5].contiguous()
+        v_means2d = grads_t[..., K.GRAD_X:K.GRAD_Y + 1].contiguous()
+        v_conics = grads_t[..., K.GRAD_CONIC_A:K.GRAD_CONIC_C + 1].contiguous()
+        v_opacities = grads_t[..., K.GRAD_OPACITY].contiguous()
         v_colors = grads_t[..., K.GRAD_HEAD:].contiguous()
         if ctx.absgrad:
-            ctx.means2d.absgrad = grads_t[..., 6:8].contiguous()
+            ctx.means2d.absgrad = grads_t[..., K.GRAD_ABS_X:K.GRAD_ABS_Y + 1].contiguous()
         v_backgrounds = None
         if ctx.has_backgrounds and ctx.needs_input_grad[4]:
             # d(out)/d(bg) = T_final per pixel

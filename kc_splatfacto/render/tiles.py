@@ -4,7 +4,8 @@ Each visible (camera, Gaussian) pair is listed once per tile its per-axis radius
 ``camera << (32 + tile_n_bits) | tile << 32 | float32 bits of depth`` sorts intersections by camera, then tile, then
 depth front to back (positive float32 bit patterns order like the floats; culling keeps depths >= near_plane > 0).
 The sort is stable, so equal depths keep the Gaussian order, as gsplat's CUB radix sort does. CPU tensors take an
-equivalent O(M) route (sort the pairs by depth once, then bucket by tile in numba); other devices sort the keys.
+equivalent O(M) compiled route (:func:`bin_tiles_cpu`: radix-sort the pairs by depth once, then bucket by tile, and
+the offsets come out of the bucketing); other devices sort the keys.
 """
 
 from __future__ import annotations
@@ -90,7 +91,9 @@ def isect_tiles(
     span = (tile_max - tile_min).clamp(min=0)  # [C, N, 2]
     counts = torch.where(visible, span[..., 0] * span[..., 1], torch.zeros_like(span[..., 0]))  # [C, N]
     if sort and means2d.device.type == "cpu" and n_gauss > 0:
-        isect_ids, flatten_ids = _bin_counting_sort(depths, visible, tile_min, tile_max, counts, tile_width, tile_height)
+        tiles_per_gauss, isect_ids, flatten_ids, _ = bin_tiles_cpu(means2d, radii, depths, tile_size, tile_width,
+                                                                   tile_height)
+        return TileIntersections(tiles_per_gauss, isect_ids, flatten_ids)
     else:
         isect_ids, flatten_ids = _bin_sort_keys(depths, tile_min, span, counts, tile_width, tile_height, sort)
     return TileIntersections(counts.to(torch.int32), isect_ids, flatten_ids.to(torch.int32))
@@ -123,32 +126,38 @@ def _bin_sort_keys(
     return isect_ids, flatten_ids
 
 
-def _bin_counting_sort(
-    depths: Tensor, visible: Tensor, tile_min: Tensor, tile_max: Tensor, counts: Tensor, tile_width: int,
-    tile_height: int,
-) -> tuple[Tensor, Tensor]:
-    """CPU binning: sort the visible pairs by (camera, depth) once, then bucket them by tile (O(M), numba).
+@torch.no_grad()
+def bin_tiles_cpu(
+    means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, tile_width: int, tile_height: int
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """:func:`isect_tiles` (sorted) and :func:`isect_offset_encode` in one compiled O(M) pass, for CPU tensors.
 
-    Same output as :func:`_bin_sort_keys` with ``sort=True``. -> [M] int64, [M] int64.
+    Args:
+        means2d: [C, N, 2]; radii: [C, N, 2] int32 (0 = culled); depths: [C, N].
+
+    Returns:
+        tiles_per_gauss [C, N] int32, isect_ids [M] int64, flatten_ids [M] int32, isect_offsets [C, tile_height,
+        tile_width] int32: the same tensors as the two functions.
     """
-    from ._tiles_kernels import bin_pairs_by_tile
+    from ._tiles_kernels import bin_tiles
 
-    n_cameras, n_gauss = depths.shape
-    bits = depth_key(depths).reshape(-1)
-    pairs = torch.nonzero(visible.reshape(-1)).squeeze(1)
-    camera_of_pair = pairs // n_gauss
-    _, order = torch.sort((camera_of_pair << DEPTH_BITS) | bits[pairs], stable=True)
-    n_isects = int(counts.sum().item())
-    isect_ids = torch.empty(n_isects, dtype=torch.int64)
-    flatten_ids = torch.empty(n_isects, dtype=torch.int64)
-    bin_pairs_by_tile(
-        pairs[order].numpy(), n_gauss,
-        tile_min[..., 0].reshape(-1).contiguous().numpy(), tile_min[..., 1].reshape(-1).contiguous().numpy(),
-        tile_max[..., 0].reshape(-1).contiguous().numpy(), tile_max[..., 1].reshape(-1).contiguous().numpy(),
-        bits.contiguous().numpy(), tile_width * tile_height, tile_width, tile_n_bits(tile_width, tile_height),
-        DEPTH_BITS, isect_ids.numpy(), flatten_ids.numpy(),
+    n_cameras = depths.shape[0]
+    n_bits = tile_n_bits(tile_width, tile_height)
+    if n_bits + max(n_cameras, 1).bit_length() > ISECT_KEY_HIGH_BITS:
+        raise ValueError(
+            f"{n_cameras} cameras x {tile_width * tile_height} tiles do not fit the 32-bit camera|tile key; "
+            "render fewer cameras per call or use a larger tile_size"
+        )
+
+    def f32(t: Tensor):
+        return t.detach().to(torch.float32).contiguous().numpy()
+
+    tiles_per_gauss, isect_ids, flatten_ids, offsets = bin_tiles(
+        f32(means2d), radii.to(torch.int32).contiguous().numpy(), f32(depths), int(tile_size), int(tile_width),
+        int(tile_height), n_bits, DEPTH_BITS,
     )
-    return isect_ids, flatten_ids
+    return (torch.from_numpy(tiles_per_gauss), torch.from_numpy(isect_ids), torch.from_numpy(flatten_ids),
+            torch.from_numpy(offsets).reshape(n_cameras, tile_height, tile_width))
 
 
 @torch.no_grad()

@@ -1,0 +1,47 @@
+"""One wrapper for every command-line entry point: user errors as one line and exit code 2, bugs with a traceback.
+
+``--debug`` (anywhere on the command line) or ``KC_DEBUG=1`` shows the traceback of a user error too.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Callable, Sequence
+
+from kc_splatfacto.errors import UserError
+
+DEBUG_FLAG = "--debug"
+DEBUG_ENV = "KC_DEBUG"
+USER_ERROR_EXIT = 2
+
+
+def debug_requested(argv: Sequence[str]) -> bool:
+    return DEBUG_FLAG in argv or os.environ.get(DEBUG_ENV, "").strip() not in ("", "0", "false", "no")
+
+
+def run_cli(prog: str, main: Callable[[list[str]], int], argv: Sequence[str] | None = None) -> int:
+    """``main(argv without --debug)``; a :class:`UserError` becomes ``prog: error: message`` on stderr and exit 2."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    debug = debug_requested(argv)
+    argv = [a for a in argv if a != DEBUG_FLAG]
+    try:
+        return main(argv)
+    except UserError as exc:
+        if debug:
+            raise
+        message = " ".join(line.strip() for line in str(exc).splitlines() if line.strip())  # one line
+        prefix = f"{prog}: "
+        if message.startswith(prefix):  # some messages already name the tool
+            message = message[len(prefix):]
+        print(f"{prog}: error: {message}", file=sys.stderr)
+        return USER_ERROR_EXIT
+
+
+def check_output_path(path, what: str) -> None:
+    """The folder of an output file must be writable: checked before the (slow) run loading."""
+    from pathlib import Path
+
+    from kc_splatfacto.engine.run_guard import check_writable_folder
+
+    check_writable_folder(Path(path).absolute().parent, f"the folder of {what}")

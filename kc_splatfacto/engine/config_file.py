@@ -1,0 +1,156 @@
+"""Reading ``config.yml`` back without running code from it.
+
+``config.yml`` is PyYAML's object dump of the run's :class:`~kc_splatfacto.engine.trainer.TrainerConfig`. Reading it
+with ``yaml.Loader`` would import any module and call any function a ``!!python/...`` tag names: a config file someone
+sent could run arbitrary code. :class:`ConfigLoader` is PyYAML's ``SafeLoader`` plus exactly the tags the dump holds:
+
+- ``!!python/object:MODULE.CLASS`` where CLASS is a dataclass of kc_splatfacto (or of a package that registered a
+  method or dataparser through the entry points): rebuilt through its ``__init__`` from plain values;
+- ``!!python/object/apply:pathlib.PosixPath`` (and the other pathlib classes): ``Path(*parts)``;
+- ``!!python/tuple``.
+
+Every other tag is a :class:`~kc_splatfacto.errors.ConfigFileError` naming the file and line.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import pathlib
+import warnings
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from kc_splatfacto.errors import ConfigFileError, ConfigFileNotFoundError
+
+PROJECT_PACKAGE = "kc_splatfacto"
+PATH_CLASSES = ("PosixPath", "WindowsPath", "PurePosixPath", "PureWindowsPath", "Path")
+OBJECT_TAG = "tag:yaml.org,2002:python/object:"
+APPLY_TAG = "tag:yaml.org,2002:python/object/apply:"
+TUPLE_TAG = "tag:yaml.org,2002:python/tuple"
+
+
+class ConfigLoader(yaml.SafeLoader):
+    """SafeLoader that also rebuilds the project's config dataclasses, paths and tuples (nothing else)."""
+
+    source = "<config>"
+
+
+def _where(loader: ConfigLoader, node: yaml.Node) -> str:
+    return f"{loader.source}:{node.start_mark.line + 1}"
+
+
+def _registered_packages() -> set[str]:
+    """Top-level packages of every registered method's and dataparser's config dataclasses (plugins included)."""
+    from kc_splatfacto.registry import discover_dataparsers, discover_methods
+
+    roots: set[str] = set()
+
+    def walk(value: Any, depth: int = 0) -> None:
+        if depth > 8 or not dataclasses.is_dataclass(value) or isinstance(value, type):
+            return
+        roots.add(type(value).__module__.split(".")[0])
+        for f in dataclasses.fields(value):
+            walk(getattr(value, f.name, None), depth + 1)
+
+    for spec in [*discover_methods().values(), *discover_dataparsers().values()]:
+        walk(spec.config)
+    return roots
+
+
+def _allowed_class(loader: ConfigLoader, suffix: str, node: yaml.Node) -> type:
+    module_name, _, class_name = suffix.rpartition(".")
+    root = module_name.split(".")[0]
+    if root != PROJECT_PACKAGE and root not in _registered_packages():
+        raise ConfigFileError(
+            f"{_where(loader, node)}: '!!python/object:{suffix}' is not a kc-splatfacto config class; refusing to "
+            "import it (a config file must not run code): use the config.yml a kc-splatfacto run wrote"
+        )
+    try:
+        cls = getattr(importlib.import_module(module_name), class_name)
+    except (ImportError, AttributeError) as exc:
+        raise ConfigFileError(f"{_where(loader, node)}: config class {suffix} does not exist ({exc})") from exc
+    if not (isinstance(cls, type) and dataclasses.is_dataclass(cls)):
+        raise ConfigFileError(f"{_where(loader, node)}: {suffix} is not a config dataclass; refusing to build it")
+    return cls
+
+
+def _construct_dataclass(loader: ConfigLoader, suffix: str, node: yaml.Node) -> Any:
+    cls = _allowed_class(loader, suffix, node)
+    if not isinstance(node, yaml.MappingNode):
+        raise ConfigFileError(f"{_where(loader, node)}: {suffix} must be a mapping of its fields")
+    state = loader.construct_mapping(node, deep=True)
+    init_fields = {f.name for f in dataclasses.fields(cls) if f.init}
+    try:
+        obj = cls(**{k: v for k, v in state.items() if k in init_fields})
+    except TypeError as exc:
+        raise ConfigFileError(f"{_where(loader, node)}: cannot build {suffix} from its fields: {exc}") from exc
+    unknown = sorted(set(state) - init_fields)
+    if unknown:  # a field renamed or removed since the run: kept as an attribute, as yaml's object loader did
+        warnings.warn(f"{_where(loader, node)}: {cls.__name__} has no field(s) {unknown}; kept as attributes")
+        for key in unknown:
+            setattr(obj, key, state[key])
+    return obj
+
+
+def _construct_apply(loader: ConfigLoader, suffix: str, node: yaml.Node) -> Any:
+    module_name, _, name = suffix.rpartition(".")
+    if module_name.split(".")[0] != "pathlib" or name not in PATH_CLASSES:
+        raise ConfigFileError(
+            f"{_where(loader, node)}: '!!python/object/apply:{suffix}' would call a function while reading the "
+            "config; refusing it (only pathlib paths are allowed)"
+        )
+    parts = loader.construct_sequence(node, deep=True) if isinstance(node, yaml.SequenceNode) else []
+    if not all(isinstance(p, str) for p in parts):
+        raise ConfigFileError(f"{_where(loader, node)}: a path must be a list of strings, got {parts!r}")
+    return getattr(pathlib, name)(*parts) if parts else getattr(pathlib, name)()
+
+
+def _construct_tuple(loader: ConfigLoader, node: yaml.Node) -> tuple:
+    return tuple(loader.construct_sequence(node, deep=True))
+
+
+def _refuse(loader: ConfigLoader, suffix: str, node: yaml.Node) -> Any:
+    raise ConfigFileError(
+        f"{_where(loader, node)}: tag '{node.tag}' is not allowed in a kc-splatfacto config (it could run code)"
+    )
+
+
+ConfigLoader.add_multi_constructor(OBJECT_TAG, _construct_dataclass)
+ConfigLoader.add_multi_constructor(APPLY_TAG, _construct_apply)
+ConfigLoader.add_constructor(TUPLE_TAG, _construct_tuple)
+ConfigLoader.add_multi_constructor("tag:yaml.org,2002:python/", _refuse)
+ConfigLoader.add_multi_constructor("!", _refuse)
+
+
+def load_yaml(text: str, source: str = "<config>") -> Any:
+    """Parse ``text`` with :class:`ConfigLoader`; ``source`` names the file in errors."""
+    loader_class = type("BoundConfigLoader", (ConfigLoader,), {"source": source})
+    try:
+        return yaml.load(text, Loader=loader_class)  # noqa: S506 (a SafeLoader subclass)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" (line {mark.line + 1}: {getattr(exc, 'problem', None) or 'parse error'})" if mark else ""
+        raise ConfigFileError(f"{source} is not valid YAML{where}: pass the config.yml a run wrote") from exc
+
+
+def read_config_file(path: Path | str) -> Any:
+    """The :class:`~kc_splatfacto.engine.trainer.TrainerConfig` stored in ``path`` (a run's ``config.yml``)."""
+    from kc_splatfacto.engine.trainer import TrainerConfig
+
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigFileNotFoundError(f"config file {path} not found: pass the config.yml of a run folder")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigFileError(f"config file {path} cannot be read ({exc})") from exc
+    config = load_yaml(text, str(path))
+    if not isinstance(config, TrainerConfig):
+        raise ConfigFileError(
+            f"{path} does not hold a kc-splatfacto TrainerConfig (found {type(config).__name__}): pass the "
+            "config.yml of a run folder"
+        )
+    return config

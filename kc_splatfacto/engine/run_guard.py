@@ -1,0 +1,214 @@
+"""Checks that run before a training run loads any data, and the resume rules.
+
+:func:`plan_run` refuses settings that would silently do nothing or the wrong thing, before the (slow) scene load:
+- ``max_num_iterations`` below 1 (a run folder with no checkpoint);
+- an output folder that cannot be written;
+- a resume (``load_dir``) whose checkpoint is past ``max_num_iterations`` (it would train nothing);
+- a resume of another scene's, method's or dataparser's run: it would overwrite that run's ``config.yml`` and
+  ``dataparser_transforms.json`` and delete its checkpoints. ``resume_from_other_run`` allows it, into a *new* run
+  folder; the other run's files are never touched.
+
+A resume of the same run also removes checkpoint temp files a hard kill left behind and drops ``metrics.jsonl``
+records written after the checkpoint (they will be written again), so the log has no duplicate or backwards steps.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from kc_splatfacto.atomic import atomic_write_text
+from kc_splatfacto.engine.checkpoints import (
+    CHECKPOINT_DIR,
+    find_checkpoint,
+    load_checkpoint,
+    remove_orphan_temp_files,
+)
+from kc_splatfacto.errors import ResumeError, UserError
+
+OVERRIDE_FLAG = "--resume-from-other-run True"
+
+
+@dataclass
+class RunPlan:
+    """Where a run writes and what it resumes from.
+
+    Attributes:
+        run_dir: the folder to continue (a resume of the same run), or None for a new run folder.
+        checkpoint: the loaded checkpoint payload to restore, or None.
+        checkpoint_path: its file, or None.
+        trimmed_records: metrics.jsonl records dropped because they were written after the checkpoint.
+    """
+
+    run_dir: Path | None = None
+    checkpoint: dict[str, Any] | None = None
+    checkpoint_path: Path | None = None
+    trimmed_records: int = 0
+
+
+def check_settings(config: Any) -> None:
+    """Settings that are wrong whatever the scene: refused before anything is loaded or written."""
+    iterations = config.max_num_iterations
+    if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
+        raise UserError(f"--max-num-iterations must be at least 1, got {iterations!r}")
+    if not isinstance(config.steps_per_save, int) or config.steps_per_save < 1:
+        raise UserError(f"--steps-per-save must be at least 1, got {config.steps_per_save!r}")
+    check_writable_folder(Path(config.output_dir), "--output-dir")
+
+
+def check_writable_folder(folder: Path, what: str) -> None:
+    """Create ``folder`` if needed and write a probe file in it; a :class:`UserError` naming it when that fails."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise UserError(
+            f"{what} {folder} is not a writable folder ({exc.strerror or exc}): choose another with {what}"
+        ) from exc
+
+
+def _dataparser(config: Any) -> Any:
+    """The dataparser config a config uses, resolved from the scene when it is ``auto`` (or not given)."""
+    datamanager = config.pipeline.datamanager
+    parser = datamanager.dataparser
+    if parser is None or type(parser).__name__ == "AutoDataParserConfig":
+        try:
+            return datamanager.resolve_dataparser()
+        except (ValueError, OSError):  # no or no readable scene: compared as given (setup says what is wrong)
+            return parser
+    return parser
+
+
+def scene_of(config: Any) -> str | None:
+    """The scene a config trains on, as an absolute path string ("demo" for the generated scene)."""
+    datamanager = config.pipeline.datamanager
+    data = datamanager.data
+    if data is None:
+        data = getattr(datamanager.dataparser, "data", None)
+    if data is None:
+        return None
+    if str(data) == "demo" and type(_dataparser(config)).__name__.startswith(("Demo", "Auto", "NoneType")):
+        return "demo"
+    return str(Path(data).expanduser().absolute())
+
+
+def dataparser_of(config: Any) -> str:
+    """The class name of the dataparser config a config uses (resolved from the scene when it is ``auto``)."""
+    return type(_dataparser(config)).__name__
+
+
+def differences(stored: Any, current: Any) -> list[str]:
+    """What makes ``current`` another run than ``stored``: method, scene, dataparser."""
+    found = []
+    if stored.method_name != current.method_name:
+        found.append(f"method {stored.method_name} vs {current.method_name}")
+    stored_scene, current_scene = scene_of(stored), scene_of(current)
+    if current_scene is not None and stored_scene != current_scene:
+        found.append(f"scene {stored_scene} vs {current_scene}")
+    stored_parser, current_parser = dataparser_of(stored), dataparser_of(current)
+    if stored_parser != current_parser:
+        found.append(f"dataparser {stored_parser} vs {current_parser}")
+    return found
+
+
+def trim_metrics(path: Path, step: int) -> int:
+    """Drop the records of ``metrics.jsonl`` with a step after ``step`` (and a torn last line); returns how many.
+
+    Rewritten atomically, and only when something is dropped.
+    """
+    path = Path(path)
+    if not path.is_file():
+        return 0
+    kept, dropped = [], 0
+    for line in path.read_text(encoding="utf-8").splitlines():
+        if not line.strip():
+            continue
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError:  # a line cut by a hard kill
+            dropped += 1
+            continue
+        if isinstance(record, dict) and isinstance(record.get("step"), int) and record["step"] > step:
+            dropped += 1
+            continue
+        kept.append(line)
+    if dropped:
+        atomic_write_text(path, "".join(line + "\n" for line in kept))
+    return dropped
+
+
+def plan_run(config: Any, map_location: Any = "cpu") -> RunPlan:
+    """The checks of this module; returns where the run writes and the checkpoint it resumes from."""
+    check_settings(config)
+    if config.load_dir is None:
+        return RunPlan()
+    path = find_checkpoint(config.load_dir, config.load_step)
+    checkpoint = load_checkpoint(path, map_location=map_location)
+    step = int(checkpoint["step"])
+    if step > config.max_num_iterations:
+        raise ResumeError(
+            f"checkpoint {path} is at step {step}, past --max-num-iterations {config.max_num_iterations}: resuming "
+            f"would train nothing. Pass a larger --max-num-iterations to train on (kc-eval / kc-render read the run "
+            "as it is)"
+        )
+    run_dir = path.parent.parent
+    stored_path = run_dir / "config.yml"
+    if path.parent.name != CHECKPOINT_DIR or not stored_path.is_file():
+        problems = [f"{path.parent} is not the nerfstudio_models folder of a run with a config.yml"]
+    else:
+        from kc_splatfacto.engine.config_file import read_config_file
+
+        problems = differences(read_config_file(stored_path), config)
+    if problems:
+        if not getattr(config, "resume_from_other_run", False):
+            raise ResumeError(
+                f"--load-dir {config.load_dir} is another run ({'; '.join(problems)}): resuming there would "
+                f"overwrite its files. Pass {OVERRIDE_FLAG} to start a new run folder from that checkpoint "
+                "(the other run is left untouched)"
+            )
+        return RunPlan(run_dir=None, checkpoint=checkpoint, checkpoint_path=path)
+    check_writable_folder(run_dir, "the run folder")
+    remove_orphan_temp_files(run_dir / CHECKPOINT_DIR)
+    trimmed = trim_metrics(run_dir / "metrics.jsonl", step)
+    return RunPlan(run_dir=run_dir, checkpoint=checkpoint, checkpoint_path=path, trimmed_records=trimmed)
+
+
+def store_absolute_scene_path(config: Any) -> None:
+    """Make the scene paths saved in ``config.yml`` absolute, so kc-eval / kc-render work from any folder."""
+    datamanager = config.pipeline.datamanager
+    for holder in (datamanager, datamanager.dataparser):
+        for name in ("data", "cache_dir"):
+            value = getattr(holder, name, None)
+            if isinstance(value, (str, os.PathLike)) and str(value) != "demo" and Path(value).exists():
+                setattr(holder, name, Path(value).expanduser().absolute())
+
+
+def announce_seed_points(datamanager: Any, model_config: Any) -> str | None:
+    """One line when the scene has no seed points and the model falls back to random Gaussians (else None)."""
+    if getattr(model_config, "random_init", False) or datamanager.seed_points() is not None:
+        return None
+    scene = getattr(datamanager.dataparser_config, "data", None)
+    line = (
+        f"no seed points in scene {scene}: starting from {model_config.num_random:,} random Gaussians "
+        f"(--pipeline.model.num-random sets the count)"
+    )
+    print(line, flush=True)
+    return line
+
+
+__all__ = [
+    "RunPlan",
+    "announce_seed_points",
+    "check_settings",
+    "check_writable_folder",
+    "differences",
+    "plan_run",
+    "store_absolute_scene_path",
+    "trim_metrics",
+]
+

@@ -1,0 +1,88 @@
+"""``kc-bench --resume`` on a tiny demo-scene study: finished runs reused, an interrupted run continued from its last
+checkpoint to the same numbers as an uninterrupted study, no evaluation logged twice; a mismatching config refused."""
+
+import json
+
+import pytest
+
+from kc_splatfacto.cli import bench
+from kc_splatfacto.analysis import report
+from kc_splatfacto.engine.metrics_log import read_metrics
+from kc_splatfacto.engine.trainer import Trainer
+
+# 12 steps, evaluations at log-spaced steps 1, 2, 5, 12; checkpoints every 4 steps; tiny images
+ARGS = ["--data", "demo", "--methods", "splatfacto", "kc-splatfacto", "--seeds", "0", "--max-num-iterations", "12",
+        "--num-evals", "4", "--steps-per-save", "4",
+        "--set", "pipeline.model.steps_scale=0.02", "pipeline.model.num_downscales=0", "logging.steps_per_log=3"]
+KILL_AT = 7  # steps completed when the second run dies: after the checkpoint at 4 and the evaluation at 5
+
+
+def _bench(out, extra=()):
+    return bench.entrypoint([*ARGS, "--output-dir", str(out), *extra])
+
+
+def _metric_rows(out):
+    return sorted((r["method"], r["step"], r["psnr"], r["ssim"], r["lpips"]) for r in report.read_rows_csv(out / "evals.csv"))
+
+
+def test_resume_continues_an_interrupted_study(tmp_path, monkeypatch):
+    assert bench.log_spaced_steps(12, 4) == (1, 2, 5, 12)
+    reference = tmp_path / "uninterrupted"
+    assert _bench(reference) == 0
+
+    original = Trainer.train_iteration
+
+    def dies_in_the_second_run(self, step):
+        if self.config.method_name == "kc-splatfacto" and step == KILL_AT:
+            raise RuntimeError("killed")  # as a killed process: no checkpoint written at the interruption
+        return original(self, step)
+
+    out = tmp_path / "study"
+    monkeypatch.setattr(Trainer, "train_iteration", dies_in_the_second_run)
+    with pytest.raises(RuntimeError, match="killed"):
+        _bench(out)
+    monkeypatch.setattr(Trainer, "train_iteration", original)
+    killed_dir = out / "runs" / "demo" / "kc-splatfacto" / "seed0"
+    logged = read_metrics(killed_dir / "metrics.jsonl")
+    assert [r["step"] for r in logged if r["kind"] == "eval"] == [1, 2, 5]  # the evaluation at 5 is past the checkpoint
+    first_log = (out / "runs" / "demo" / "splatfacto" / "seed0" / "metrics.jsonl").read_text()
+
+    assert _bench(out, ["--resume"]) == 0
+    runs = json.loads((out / "runs.json").read_text())
+    assert [(r["method"], r["status"]) for r in runs] == [("splatfacto", "reused"), ("kc-splatfacto", "resumed")]
+    assert [r["run_dir"] for r in runs] == [str(out / "runs" / "demo" / m / "seed0") for m in ("splatfacto", "kc-splatfacto")]
+    assert (out / "runs" / "demo" / "splatfacto" / "seed0" / "metrics.jsonl").read_text() == first_log  # untouched
+    assert not (out / "runs" / "demo" / "kc-splatfacto" / "seed0_1").exists()
+
+    records = read_metrics(killed_dir / "metrics.jsonl")
+    for kind in ("eval", "train", "checkpoint"):
+        steps = [r["step"] for r in records if r["kind"] == kind]
+        assert steps == sorted(set(steps)), (kind, steps)  # nothing logged twice
+    assert [r["step"] for r in records if r["kind"] == "eval"] == [1, 2, 5, 12]
+    # CPU resume is bit-identical, so the continued study reports exactly the uninterrupted study's numbers
+    assert _metric_rows(out) == _metric_rows(reference)
+
+    # a third --resume reuses everything and appends nothing
+    assert _bench(out, ["--resume"]) == 0
+    assert [r["status"] for r in json.loads((out / "runs.json").read_text())] == ["reused", "reused"]
+    assert read_metrics(killed_dir / "metrics.jsonl") == records
+    assert _metric_rows(out) == _metric_rows(reference)
+
+
+def test_resume_refuses_a_run_folder_with_another_config(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "study"
+    original = Trainer.train_iteration
+
+    def dies(self, step):
+        if step == KILL_AT:
+            raise RuntimeError("killed")
+        return original(self, step)
+
+    monkeypatch.setattr(Trainer, "train_iteration", dies)
+    with pytest.raises(RuntimeError):
+        _bench(out)
+    monkeypatch.setattr(Trainer, "train_iteration", original)
+    other = ["--set", *ARGS[ARGS.index("--set") + 1:], "pipeline.model.ssim_lambda=0.5"]
+    assert _bench(out, ["--resume", *other]) == 2
+    err = capsys.readouterr().err
+    assert "pipeline.model" in err and "seed0" in err and "--runs-dir" in err
