@@ -9,32 +9,10 @@ from __future__ import annotations
 import torch
 
 from kc_splatfacto.data.outputs import Cameras
-from kc_splatfacto.render.projection import quat_to_rotmat
+from kc_splatfacto.render.projection import quat_to_rotmat, rotmat_to_quat
 
 #: Below this angle (radians) between two orientations slerp degenerates to lerp + renormalize.
 SLERP_LINEAR_THRESHOLD = 1e-6
-
-
-def rotmat_to_quat(rotmats: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices [N,3,3] -> unit quaternions [N,4] (w, x, y, z) with w >= 0 (Shepperd's method)."""
-    if rotmats.ndim != 3 or rotmats.shape[1:] != (3, 3):
-        raise ValueError(f"rotmat_to_quat: expected [N,3,3], got {tuple(rotmats.shape)}")
-    r = rotmats.to(torch.float64)
-    m00, m11, m22 = r[:, 0, 0], r[:, 1, 1], r[:, 2, 2]
-    # Four candidate (unnormalized) quaternions; use the one with the largest diagonal term for stability.
-    candidates = torch.stack(
-        [
-            torch.stack([1 + m00 + m11 + m22, r[:, 2, 1] - r[:, 1, 2], r[:, 0, 2] - r[:, 2, 0], r[:, 1, 0] - r[:, 0, 1]], -1),
-            torch.stack([r[:, 2, 1] - r[:, 1, 2], 1 + m00 - m11 - m22, r[:, 0, 1] + r[:, 1, 0], r[:, 0, 2] + r[:, 2, 0]], -1),
-            torch.stack([r[:, 0, 2] - r[:, 2, 0], r[:, 0, 1] + r[:, 1, 0], 1 - m00 + m11 - m22, r[:, 1, 2] + r[:, 2, 1]], -1),
-            torch.stack([r[:, 1, 0] - r[:, 0, 1], r[:, 0, 2] + r[:, 2, 0], r[:, 1, 2] + r[:, 2, 1], 1 - m00 - m11 + m22], -1),
-        ],
-        dim=1,
-    )  # [N, 4 candidates, 4]
-    choice = torch.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1).argmax(-1)
-    q = candidates[torch.arange(r.shape[0]), choice]
-    q = q / q.norm(dim=-1, keepdim=True)
-    return torch.where(q[:, :1] < 0, -q, q)
 
 
 def slerp(q0: torch.Tensor, q1: torch.Tensor, t: torch.Tensor) -> torch.Tensor:

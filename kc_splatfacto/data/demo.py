@@ -27,13 +27,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from kc_splatfacto.data.base import CACHE_ENV, DataParserError, default_cache_dir
 from kc_splatfacto.data.images import write_image_atomic
 from kc_splatfacto.data.spars3r import Spars3rDataParser, Spars3rDataParserConfig
+from kc_splatfacto.render.projection import rotmat_to_quat
 
 # Bump when the generator changes: it is part of the cache key, so stale scenes are never reused.
-DEMO_VERSION = 1
+DEMO_VERSION = 2  # 2: camera quaternions from render.projection.rotmat_to_quat (within 4e-16 of v1's)
 TEXTURE_SIZE = 256
 TEXEL_SIZE = 1.0 / 40.0  # scene units per texel; a texture tile covers 6.4 units and repeats
 SUBSAMPLE_OFFSETS = (0.25, 0.75)
@@ -330,27 +332,6 @@ def sample_seed_points(
 # ----------------------------------------------------------------------------------------------------------------
 
 
-def rotation_to_quaternion(rot: np.ndarray) -> np.ndarray:
-    """[3,3] rotation -> (w, x, y, z), w >= 0 (Shepperd's method, numerically stable for every angle)."""
-    m = np.asarray(rot, np.float64)
-    trace = np.trace(m)
-    if trace > 0:
-        s = 2.0 * math.sqrt(trace + 1.0)
-        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
-    else:
-        i = int(np.argmax(np.diag(m)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * math.sqrt(max(1.0 + m[i, i] - m[j, j] - m[k, k], 1e-300))
-        q = [0.0, 0.0, 0.0, 0.0]
-        q[0] = (m[k, j] - m[j, k]) / s
-        q[1 + i] = 0.25 * s
-        q[1 + j] = (m[j, i] + m[i, j]) / s
-        q[1 + k] = (m[k, i] + m[i, k]) / s
-    q = np.array(q)
-    q /= np.linalg.norm(q)
-    return q if q[0] >= 0 else -q
-
-
 def write_colmap_text_model(
     folder: Path,
     width: int,
@@ -370,7 +351,7 @@ def write_colmap_text_model(
     for image_id, (name, c2w) in enumerate(zip(names, c2ws), start=1):
         rot_cw = c2w[:3, :3].T
         t_cw = -rot_cw @ c2w[:3, 3]
-        q = rotation_to_quaternion(rot_cw)
+        q = rotmat_to_quat(torch.from_numpy(np.asarray(rot_cw, np.float64))[None])[0].numpy()
         lines.append(
             " ".join([str(image_id), *(repr(float(v)) for v in q), *(repr(float(v)) for v in t_cw), "1", name])
         )

@@ -46,6 +46,7 @@ from kc_splatfacto.data.colmap import ColmapCamera, check_image_sizes, pinhole_i
 from kc_splatfacto.data.images import image_size
 from kc_splatfacto.data.outputs import DataparserOutputs
 from kc_splatfacto.data.paths import inside_folder
+from kc_splatfacto.data.ply import read_ply_points
 
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
 DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")  # OpenCV's coefficient order
@@ -135,26 +136,6 @@ def frame_camera(frame: dict, meta: dict, json_path: Path, image_path: Path | No
     if not np.isfinite([camera.fx, camera.fy, camera.cx, camera.cy, *distortion]).all() or camera.fx <= 0:
         raise DataParserError(f"{json_path}: frame '{frame.get('file_path')}' has invalid intrinsics")
     return camera
-
-
-def read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """([M,3] float64 xyz, [M,3] uint8 rgb) from a PLY point cloud (grey when it has no colours)."""
-    import trimesh
-
-    if not path.is_file():
-        raise DataParserError(f"ply_file_path {path} does not exist: fix the path in transforms.json or remove it")
-    try:
-        cloud = trimesh.load(str(path), process=False)
-    except Exception as exc:
-        raise DataParserError(f"could not read the point cloud {path}: {exc}") from exc
-    xyz = np.asarray(getattr(cloud, "vertices", np.zeros((0, 3))), np.float64).reshape(-1, 3)
-    colours = getattr(cloud, "colors", None)
-    if colours is None or len(colours) != len(xyz):
-        colours = getattr(getattr(cloud, "visual", None), "vertex_colors", None)
-    rgb = np.asarray(colours, np.uint8)[:, :3] if colours is not None and len(colours) == len(xyz) else None
-    if rgb is None:
-        rgb = np.full((len(xyz), 3), 128, np.uint8)
-    return xyz, rgb
 
 
 class TransformsDataParser(DataParser):
@@ -283,7 +264,12 @@ class TransformsDataParser(DataParser):
         )
         if self.config.load_3d_points and "ply_file_path" in meta:
             ply = inside_folder(base, meta["ply_file_path"], f"{json_path} ply_file_path", self.config.allow_symlinks_out)
-            xyz, rgb = read_ply_points(ply)
+            if not ply.is_file():
+                raise DataParserError(f"ply_file_path {ply} does not exist: fix the path in transforms.json or remove it")
+            try:
+                xyz, rgb = read_ply_points(ply)
+            except ValueError as exc:
+                raise DataParserError(f"could not read the point cloud {ply}: {exc}") from exc
             outputs.points3d_xyz = torch.from_numpy(normalization.apply_to_points(xyz).astype(np.float32))
             outputs.points3d_rgb = torch.from_numpy(rgb.copy())
         return outputs

@@ -24,18 +24,10 @@ import numpy as np
 import torch
 
 from kc_splatfacto.atomic import atomic_write_bytes
+from kc_splatfacto.data.ply import read_ply_vertices
 
 #: The parameter names of ``model.gauss_params`` that a PLY file carries.
 PLY_PARAM_NAMES = ("means", "scales", "quats", "opacities", "features_dc", "features_rest")
-
-# PLY scalar type names -> numpy little-endian dtypes (both the classic and the sized spellings).
-_PLY_DTYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "<i2", "int16": "<i2", "ushort": "<u2", "uint16": "<u2",
-    "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4",
-    "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8",
-}
-
 
 @dataclass
 class PlyExportResult:
@@ -126,47 +118,6 @@ def export_ply(path: str | Path, params: Mapping[str, torch.Tensor | np.ndarray]
     payload = ("\n".join(header) + "\n").encode("ascii") + structured.tobytes()
     atomic_write_bytes(path, payload)
     return PlyExportResult(path=path, num_written=int(rows.shape[0]), num_dropped=num_dropped, sh_rest_coeffs=k)
-
-
-def read_ply_vertices(path: str | Path) -> np.ndarray:
-    """The ``vertex`` element of a binary little-endian PLY as a numpy structured array (one field per property)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"PLY file {path} does not exist")
-    data = path.read_bytes()
-    end = data.find(b"end_header")
-    if not data.startswith(b"ply") or end < 0:
-        raise ValueError(f"{path} is not a PLY file (no 'ply' magic / 'end_header')")
-    body_start = data.index(b"\n", end) + 1
-    lines = data[:end].decode("ascii", errors="replace").splitlines()
-    fmt = next((line.split()[1] for line in lines if line.startswith("format")), None)
-    if fmt != "binary_little_endian":
-        raise ValueError(f"{path}: format '{fmt}' is not supported; 3DGS PLY files are binary_little_endian")
-    elements: list[tuple[str, int, list[tuple[str, str]]]] = []
-    for line in lines:
-        parts = line.split()
-        if not parts:
-            continue
-        if parts[0] == "element":
-            elements.append((parts[1], int(parts[2]), []))
-        elif parts[0] == "property":
-            if not elements:
-                raise ValueError(f"{path}: property before any element in the header")
-            if parts[1] == "list":
-                raise ValueError(f"{path}: list property '{parts[-1]}' is not supported in a 3DGS PLY")
-            if parts[1] not in _PLY_DTYPES:
-                raise ValueError(f"{path}: unknown PLY property type '{parts[1]}'")
-            elements[-1][2].append((parts[2], _PLY_DTYPES[parts[1]]))
-    offset = body_start
-    for name, count, props in elements:
-        dtype = np.dtype(props)
-        if name == "vertex":
-            needed = offset + count * dtype.itemsize
-            if len(data) < needed:
-                raise ValueError(f"{path}: truncated ({len(data)} bytes, the header announces {needed})")
-            return np.frombuffer(data, dtype=dtype, count=count, offset=offset).copy()
-        offset += count * dtype.itemsize
-    raise ValueError(f"{path}: no 'vertex' element in the header")
 
 
 def import_ply(path: str | Path) -> dict[str, torch.Tensor]:

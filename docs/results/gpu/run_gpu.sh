@@ -13,7 +13,7 @@ python3 -m pip install -q --no-index --no-deps --no-compile .whl/*.whl && python
 python3 -c "import torch, numba, numpy; print('torch', torch.__version__, 'numba', numba.__version__, 'numpy', numpy.__version__)"
 phase compile 300 python3 -c "import time; t=time.time(); from gsplat.cuda._backend import _C; assert _C is not None; print('gsplat CUDA build', round(time.time()-t,1), 's')"
 for p in "$@"; do case $p in
-parity) phase parity 200 env KC_PARITY_REPORT=$OUT/parity.json python3 -m pytest -q -rs tests/test_render_gsplat_cuda.py tests/test_wavelets.py::test_cuda_matches_cpu ;;
+parity) phase parity 200 env KC_PARITY_REPORT=$OUT/parity.json python3 -m pytest -q -rs tests/render/test_gsplat_cuda.py tests/losses/test_wavelets.py::test_cuda_matches_cpu ;;
 train) phase train 150 kc-train kc-splatfacto --data .gpu/data/castle-P30 --machine.device cuda --max-num-iterations 500 --steps-per-eval-all-images 250 --logging.progress-bar False --output-dir /tmp/runs spars3r --downscale-factor 4 ;;
 bench) phase bench 300 python3 benchmarks/bench_gpu.py --scene .gpu/data/castle-P30 --downscale 1 --warmup-steps 3000 --steps 200 --rounds 3 ;;
 profile) phase profile 200 python3 benchmarks/profile_gpu_step.py --scene .gpu/data/castle-P30 --warmup-steps 1000 --steps 30 ;;

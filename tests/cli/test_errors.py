@@ -70,7 +70,7 @@ def test_a_bug_keeps_its_traceback(tmp_path, monkeypatch):
 
 
 def test_installed_kc_train_prints_one_line_and_exits_2(tmp_path):
-    env = dict(os.environ, OMP_WAIT_POLICY="PASSIVE")
+    env = dict(os.environ)
     env.pop("KC_DEBUG", None)
     proc = subprocess.run([str(BIN / "kc-train"), "splatfacto", "--data", str(tmp_path / "nowhere"),
                            "--output-dir", str(tmp_path / "out")], capture_output=True, text=True, env=env,

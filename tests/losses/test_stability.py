@@ -16,7 +16,7 @@ from kc_splatfacto.losses import (
     prepare_target,
     wavelet_bands,
 )
-from tests.test_frequency import blur, load_image
+from tests.losses.test_frequency import blur, load_image
 
 ALL_TERMS = {"wavelet_loss", "kc_loss", "cbc_loss"}
 

@@ -12,7 +12,7 @@ import pytest
 from kc_splatfacto.cli.train import parse_config
 from kc_splatfacto.registry import discover_methods
 
-PROJECT_ROOT = Path(__file__).resolve().parents[1]
+PROJECT_ROOT = Path(__file__).resolve().parents[2]
 BUILT_IN = ["splatfacto", "kc-splatfacto", "kc-splatfacto-fine", "kc-ablation-l1-wavelet", "kc-ablation-wavelet",
             "kc-ablation-unscaled-wavelet", "kc-ablation-heavy-wavelet", "kc-ablation-scaled-cbc"]
 

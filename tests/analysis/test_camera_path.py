@@ -8,12 +8,9 @@ import torch
 from scipy.spatial.transform import Rotation, Slerp
 
 from kc_splatfacto.data.outputs import Cameras
-from kc_splatfacto.analysis.camera_path import (
-    interpolate_camera_path,
-    rotmat_to_quat,
-    slerp,
-)
+from kc_splatfacto.analysis.camera_path import interpolate_camera_path, slerp
 from kc_splatfacto.render import quat_to_rotmat
+from kc_splatfacto.render.projection import rotmat_to_quat
 
 
 def _keys(num: int = 4, seed: int = 0) -> tuple[Cameras, np.ndarray, np.ndarray]:

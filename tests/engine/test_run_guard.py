@@ -265,7 +265,7 @@ def test_real_config_round_trips_through_the_safe_loader(finished_run):
 
 
 def test_sigterm_saves_a_checkpoint_and_exits_cleanly(tmp_path):
-    env = dict(os.environ, OMP_WAIT_POLICY="PASSIVE", KC_SPLATFACTO_CACHE=str(tmp_path / "cache"))
+    env = dict(os.environ, KC_SPLATFACTO_CACHE=str(tmp_path / "cache"))
     proc = subprocess.Popen(
         [str(KC_TRAIN), "splatfacto", "--data", "demo", "--max-num-iterations", "100000", "--output-dir",
          str(tmp_path), "--logging.progress-bar", "False", "--logging.steps-per-log", "2", "--timestamp", "term",

@@ -55,8 +55,8 @@ def random_scene(n: int = 3000, n_cameras: int = 2, width: int = 96, height: int
 
 
 def garden_scene(garden_npz, downscale: int = 4):
-    """gsplat's test_garden.npz as in its ``load_test_data`` (tests/test_render_garden.py), RGB colours, 1/4 size."""
-    from tests.test_render_garden import load_garden
+    """gsplat's test_garden.npz as in its ``load_test_data`` (tests/render/test_garden.py), RGB colours, 1/4 size."""
+    from tests.render.test_garden import load_garden
 
     garden = load_garden(str(garden_npz))
     Ks = garden["Ks"].clone()

@@ -126,7 +126,7 @@ def test_forced_and_third_party_dataparsers(castle_p30, monkeypatch):
     forced = resolve_dataparser(castle_p30, "colmap")  # detection would say spars3r
     assert isinstance(forced, ColmapDataParserConfig) and forced.data == castle_p30
     assert len(parse(forced).image_filenames) == 21  # interval split of all 24 images
-    monkeypatch.setenv("KC_SPLATFACTO_DATAPARSER_CONFIGS", "mine=tests.test_data_bad_input:custom_parser")
+    monkeypatch.setenv("KC_SPLATFACTO_DATAPARSER_CONFIGS", "mine=tests.data.test_bad_input:custom_parser")
     mine = resolve_dataparser(castle_p30, "mine")
     assert mine is not custom_parser.config and mine.data == castle_p30  # a copy: the registry stays pristine
     assert len(parse(mine).image_filenames) == 24

@@ -110,7 +110,7 @@ def test_bad_inputs_name_the_problem(tmp_path):
     with pytest.raises(FileNotFoundError, match="missing.ply"):
         import_ply(tmp_path / "missing.ply")
     (tmp_path / "ascii.ply").write_text("ply\nformat ascii 1.0\nelement vertex 0\nend_header\n")
-    with pytest.raises(ValueError, match="binary_little_endian"):
+    with pytest.raises(ValueError, match="not a 3DGS PLY"):
         import_ply(tmp_path / "ascii.ply")
 
 
