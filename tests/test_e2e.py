@@ -5,7 +5,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import torch
@@ -16,7 +15,7 @@ from kc_splatfacto.engine.evaluation import evaluate_split
 from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.run_io import load_run
 from kc_splatfacto.engine.trainer import Trainer
-from tests.training_utils import tiny_demo_config
+from tests.training_utils import interrupt_cli_training, tiny_demo_config
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 KC_TRAIN = Path(sys.executable).parent / "kc-train"
@@ -79,23 +78,13 @@ def test_kc_train_command_prints_metrics_and_output_folder(tmp_path):
 
 
 def test_ctrl_c_saves_a_checkpoint_and_exits_cleanly(tmp_path):
-    proc = subprocess.Popen(
-        [str(KC_TRAIN), "splatfacto", "--data", "demo", "--max-num-iterations", "100000", "--output-dir",
-         str(tmp_path), "--logging.progress-bar", "False", "--logging.steps-per-log", "2", "--timestamp", "sigint",
-         "--steps-per-eval-all-images", "0"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=cli_env(), cwd=tmp_path,
-    )
-    metrics = tmp_path / "demo" / "splatfacto" / "sigint" / "metrics.jsonl"
-    deadline = time.time() + 240
-    while time.time() < deadline and not (metrics.exists() and '"kind": "train"' in metrics.read_text()):
-        time.sleep(0.5)
-    proc.send_signal(signal.SIGINT)
-    stdout, stderr = proc.communicate(timeout=120)
+    proc, run_dir = interrupt_cli_training(tmp_path, signal.SIGINT, "sigint", cli_env())
+    stdout, stderr = proc.stdout, proc.stderr
     assert proc.returncode == 0, stderr
     assert "Traceback" not in stderr
     assert "interrupted at step" in stdout
-    checkpoints = sorted((metrics.parent / "nerfstudio_models").glob("step-*.ckpt"))
+    checkpoints = sorted((run_dir / "nerfstudio_models").glob("step-*.ckpt"))
     assert len(checkpoints) == 1
     step = int(checkpoints[0].stem.split("-")[1])
     assert 2 <= step < 100000
-    assert load_run(metrics.parent).step == step
+    assert load_run(run_dir).step == step

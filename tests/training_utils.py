@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import copy
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 from kc_splatfacto.data.demo import DemoDataParserConfig
@@ -35,3 +38,21 @@ def tiny_demo_config(method: str, output_dir: Path, iterations: int = 60, steps_
             raise AttributeError(f"model config has no field {key}")
         setattr(model, key, value)
     return config
+
+
+def interrupt_cli_training(tmp_path: Path, signum: int, timestamp: str, env: dict) -> tuple[subprocess.CompletedProcess, Path]:
+    """Start ``kc-train splatfacto --data demo`` (a budget it never reaches) in ``tmp_path``, send ``signum`` once
+    it has logged a training record, and wait for it to exit. Returns (the finished process, the run folder)."""
+    proc = subprocess.Popen(
+        [str(Path(sys.executable).parent / "kc-train"), "splatfacto", "--data", "demo", "--max-num-iterations",
+         "100000", "--output-dir", str(tmp_path), "--logging.progress-bar", "False", "--logging.steps-per-log", "2",
+         "--timestamp", timestamp, "--steps-per-eval-all-images", "0"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path,
+    )
+    metrics = tmp_path / "demo" / "splatfacto" / timestamp / "metrics.jsonl"
+    deadline = time.time() + 240
+    while time.time() < deadline and not (metrics.exists() and '"kind": "train"' in metrics.read_text()):
+        time.sleep(0.5)
+    proc.send_signal(signum)
+    stdout, stderr = proc.communicate(timeout=120)
+    return subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr), metrics.parent

@@ -256,13 +256,10 @@ def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
     return paths
 
 
-def write_kurtosis_gap_plots(runs: Sequence[dict], out_dir: Path) -> dict[str, Path]:
-    """Per scene, ``kurtosis_gap_<scene>.png``: the render-vs-GT band-kurtosis gap over training, one curve per
-    method, for the lowest seed (see :func:`kc_splatfacto.analysis.diagnostics.plot_kurtosis_gap_comparison`)."""
-    from kc_splatfacto.analysis.diagnostics import plot_kurtosis_gap_comparison
+def _lowest_seed_records(runs: Sequence[dict]):
+    """Per scene (in run order): (scene, its lowest seed, {method: that run's metrics.jsonl records})."""
     from kc_splatfacto.engine.metrics_log import read_metrics
 
-    paths = {}
     for scene in dict.fromkeys(r["scene"] for r in runs):
         seed = min(r["seed"] for r in runs if r["scene"] == scene)
         records = {
@@ -270,6 +267,16 @@ def write_kurtosis_gap_plots(runs: Sequence[dict], out_dir: Path) -> dict[str, P
             for r in runs
             if r["scene"] == scene and r["seed"] == seed
         }
+        yield scene, seed, records
+
+
+def write_kurtosis_gap_plots(runs: Sequence[dict], out_dir: Path) -> dict[str, Path]:
+    """Per scene, ``kurtosis_gap_<scene>.png``: the render-vs-GT band-kurtosis gap over training, one curve per
+    method, for the lowest seed (see :func:`kc_splatfacto.analysis.diagnostics.plot_kurtosis_gap_comparison`)."""
+    from kc_splatfacto.analysis.diagnostics import plot_kurtosis_gap_comparison
+
+    paths = {}
+    for scene, seed, records in _lowest_seed_records(runs):
         try:
             paths[f"kurtosis_gap_{scene}"] = plot_kurtosis_gap_comparison(
                 records, out_dir / f"kurtosis_gap_{scene}.png", title=f"{scene}, seed {seed}"
@@ -283,16 +290,9 @@ def write_gradient_share_plots(runs: Sequence[dict], out_dir: Path) -> dict[str,
     """Per scene, ``gradient_shares_<scene>.png``: each loss term's image-gradient norm relative to the photometric
     term's over training, one panel per method, for the lowest seed (:func:`report.plot_gradient_shares`)."""
     from kc_splatfacto.analysis.report import plot_gradient_shares
-    from kc_splatfacto.engine.metrics_log import read_metrics
 
     paths = {}
-    for scene in dict.fromkeys(r["scene"] for r in runs):
-        seed = min(r["seed"] for r in runs if r["scene"] == scene)
-        records = {
-            r["method"]: read_metrics(Path(r["run_dir"]) / "metrics.jsonl")
-            for r in runs
-            if r["scene"] == scene and r["seed"] == seed
-        }
+    for scene, seed, records in _lowest_seed_records(runs):
         path = plot_gradient_shares(records, out_dir / f"gradient_shares_{scene}.png", title=f"{scene}, seed {seed}")
         if path is not None:
             paths[f"gradient_shares_{scene}"] = path

@@ -84,22 +84,20 @@ def _dataparser(config: Any) -> Any:
     return parser
 
 
-def scene_of(config: Any) -> str | None:
-    """The scene a config trains on, as an absolute path string ("demo" for the generated scene)."""
+def scene_of(config: Any, parser: Any = None) -> str | None:
+    """The scene a config trains on, as an absolute path string ("demo" for the generated scene); ``parser`` is
+    :func:`_dataparser` of the config when the caller has it already (resolving ``auto`` looks at the folder)."""
     datamanager = config.pipeline.datamanager
     data = datamanager.data
     if data is None:
         data = getattr(datamanager.dataparser, "data", None)
     if data is None:
         return None
-    if str(data) == "demo" and type(_dataparser(config)).__name__.startswith(("Demo", "Auto", "NoneType")):
+    if parser is None:
+        parser = _dataparser(config)
+    if str(data) == "demo" and type(parser).__name__.startswith(("Demo", "Auto", "NoneType")):
         return "demo"
     return str(Path(data).expanduser().absolute())
-
-
-def dataparser_of(config: Any) -> str:
-    """The class name of the dataparser config a config uses (resolved from the scene when it is ``auto``)."""
-    return type(_dataparser(config)).__name__
 
 
 def differences(stored: Any, current: Any) -> list[str]:
@@ -107,12 +105,13 @@ def differences(stored: Any, current: Any) -> list[str]:
     found = []
     if stored.method_name != current.method_name:
         found.append(f"method {stored.method_name} vs {current.method_name}")
-    stored_scene, current_scene = scene_of(stored), scene_of(current)
+    stored_parser, current_parser = _dataparser(stored), _dataparser(current)  # each resolved once
+    stored_scene, current_scene = scene_of(stored, stored_parser), scene_of(current, current_parser)
     if current_scene is not None and stored_scene != current_scene:
         found.append(f"scene {stored_scene} vs {current_scene}")
-    stored_parser, current_parser = dataparser_of(stored), dataparser_of(current)
-    if stored_parser != current_parser:
-        found.append(f"dataparser {stored_parser} vs {current_parser}")
+    stored_name, current_name = type(stored_parser).__name__, type(current_parser).__name__
+    if stored_name != current_name:
+        found.append(f"dataparser {stored_name} vs {current_name}")
     return found
 
 

@@ -8,9 +8,6 @@ import hashlib
 import json
 import os
 import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -22,9 +19,7 @@ from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.run_guard import trim_metrics
 from kc_splatfacto.engine.trainer import Trainer
 from kc_splatfacto.errors import CheckpointError, ConfigFileError, ResumeError, UserError
-from tests.training_utils import tiny_demo_config
-
-KC_TRAIN = Path(sys.executable).parent / "kc-train"
+from tests.training_utils import interrupt_cli_training, tiny_demo_config
 
 
 def snapshot(folder: Path) -> dict[str, str]:
@@ -266,21 +261,11 @@ def test_real_config_round_trips_through_the_safe_loader(finished_run):
 
 def test_sigterm_saves_a_checkpoint_and_exits_cleanly(tmp_path):
     env = dict(os.environ, KC_SPLATFACTO_CACHE=str(tmp_path / "cache"))
-    proc = subprocess.Popen(
-        [str(KC_TRAIN), "splatfacto", "--data", "demo", "--max-num-iterations", "100000", "--output-dir",
-         str(tmp_path), "--logging.progress-bar", "False", "--logging.steps-per-log", "2", "--timestamp", "term",
-         "--steps-per-eval-all-images", "0"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path,
-    )
-    metrics = tmp_path / "demo" / "splatfacto" / "term" / "metrics.jsonl"
-    deadline = time.time() + 240
-    while time.time() < deadline and not (metrics.exists() and '"kind": "train"' in metrics.read_text()):
-        time.sleep(0.5)
-    proc.send_signal(signal.SIGTERM)
-    stdout, stderr = proc.communicate(timeout=120)
+    proc, run_dir = interrupt_cli_training(tmp_path, signal.SIGTERM, "term", env)
+    stdout, stderr = proc.stdout, proc.stderr
     assert proc.returncode == 0, stderr
     assert "Traceback" not in stderr
     assert "interrupted at step" in stdout
-    checkpoints = list_checkpoints(metrics.parent / "nerfstudio_models")
+    checkpoints = list_checkpoints(run_dir / "nerfstudio_models")
     assert len(checkpoints) == 1 and int(checkpoints[0].stem.split("-")[1]) >= 2
 

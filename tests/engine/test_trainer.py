@@ -140,22 +140,27 @@ def test_non_finite_loss_skips_the_step_and_repeated_ones_stop_training(tmp_path
     assert all(torch.isfinite(v).all() for v in state["model"].values())
 
 
-def test_non_finite_parameters_remove_their_gaussians(tmp_path):
-    config = tiny_demo_config("splatfacto", tmp_path, iterations=12)
-    trainer = Trainer(config)
+def _train_with_infinite_rows(tmp_path, param: str, rows: int, at_step: int):
+    """A 12-step splatfacto run whose first ``rows`` rows of ``param`` become +inf before step ``at_step``;
+    returns (trainer, Gaussian count before, metrics records)."""
+    trainer = Trainer(tiny_demo_config("splatfacto", tmp_path, iterations=12))
     trainer.setup()
     original = trainer.train_iteration
 
     def corrupt(step):
-        if step == 4:
+        if step == at_step:
             with torch.no_grad():
-                trainer.optimizers["scales"].param_groups[0]["params"][0][:3] = float("inf")
+                trainer.optimizers[param].param_groups[0]["params"][0][:rows] = float("inf")
         return original(step)
 
     trainer.train_iteration = corrupt
     n0 = trainer.model.num_points
     trainer.train()
-    records = read_metrics(trainer.run_dir / "metrics.jsonl")
+    return trainer, n0, read_metrics(trainer.run_dir / "metrics.jsonl")
+
+
+def test_non_finite_parameters_remove_their_gaussians(tmp_path):
+    trainer, n0, records = _train_with_infinite_rows(tmp_path, "scales", rows=3, at_step=4)
     assert any(r["kind"] == "bad_step" and "3 Gaussians removed" in r["reason"] for r in records)
     assert trainer.model.num_points == n0 - 3
     assert all(torch.isfinite(p).all() for p in trainer.model.gauss_params.values())
@@ -166,21 +171,7 @@ def test_non_finite_parameters_that_render_finitely_are_removed_by_the_periodic_
     import kc_splatfacto.engine.trainer as trainer_module
 
     monkeypatch.setattr(trainer_module, "PARAMETER_SCAN_EVERY", 5)
-    config = tiny_demo_config("splatfacto", tmp_path, iterations=12)
-    trainer = Trainer(config)
-    trainer.setup()
-    original = trainer.train_iteration
-
-    def corrupt(step):
-        if step == 2:
-            with torch.no_grad():
-                trainer.optimizers["opacities"].param_groups[0]["params"][0][:2] = float("inf")
-        return original(step)
-
-    trainer.train_iteration = corrupt
-    n0 = trainer.model.num_points
-    trainer.train()
-    records = read_metrics(trainer.run_dir / "metrics.jsonl")
+    trainer, n0, records = _train_with_infinite_rows(tmp_path, "opacities", rows=2, at_step=2)
     removals = [r for r in records if r["kind"] == "bad_step" and "2 Gaussians removed" in r["reason"]]
     assert [r["step"] for r in removals] == [6]  # found by the scan of step 5 (0-based), reported as step 6
     assert trainer.model.num_points == n0 - 2

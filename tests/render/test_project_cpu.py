@@ -10,6 +10,7 @@ import torch
 from kc_splatfacto.render.project_cpu import project_and_shade_cpu
 from kc_splatfacto.render.projection import fully_fused_projection
 from kc_splatfacto.render.sh import sh_to_rgb
+from tests.render.cameras import turning_viewmats
 
 WIDTH, HEIGHT = 64, 48
 
@@ -25,12 +26,7 @@ def scene(n=300, n_cameras=2, sh_degree=3, seed=0, dtype=torch.float64):
     opacities[: n // 10] *= 0.01  # some below 1/255 (culled), some just above
     k = 16
     shs = torch.randn(n, k, 3, generator=g) * 0.5
-    viewmats = torch.eye(4).repeat(n_cameras, 1, 1)
-    for c in range(n_cameras):
-        angle = 0.15 * c
-        viewmats[c, :3, :3] = torch.tensor([[math.cos(angle), 0, math.sin(angle)], [0, 1, 0],
-                                            [-math.sin(angle), 0, math.cos(angle)]])
-        viewmats[c, :3, 3] = torch.tensor([0.1 * c, -0.05 * c, 0.2 * c])
+    viewmats = turning_viewmats(n_cameras, 0.15)
     Ks = torch.tensor([[50.0, 0, 31.7], [0, 52.0, 23.2], [0, 0, 1]]).repeat(n_cameras, 1, 1)
     return [t.to(dtype) for t in (means, quats, scales, opacities, shs, viewmats, Ks)]
 

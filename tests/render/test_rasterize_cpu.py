@@ -8,6 +8,7 @@ from kc_splatfacto.render.constants import TILE_SIZE
 from kc_splatfacto.render.rasterize_cpu import rasterize_to_pixels_cpu
 from kc_splatfacto.render.rasterize_torch import rasterize_to_pixels_torch
 from kc_splatfacto.render.tiles import isect_offset_encode, isect_tiles, tile_grid
+from tests.render.cameras import turning_viewmats
 
 
 def random_splats(n_cameras, n_gauss, width, height, channels, seed=0, sigma_px=(0.5, 4.0), margin=8.0,
@@ -262,8 +263,6 @@ def test_packed_extent_is_conservative_and_tight():
 
 def scene_3d(n, n_cameras, seed, sh_degree):
     """Gaussians in front of cameras that look down +z from slightly different places (float32)."""
-    import math
-
     g = torch.Generator().manual_seed(seed)
     means = torch.randn(n, 3, generator=g) * 0.6 + torch.tensor([0.0, 0.0, 3.0])
     quats = torch.randn(n, 4, generator=g)
@@ -271,12 +270,7 @@ def scene_3d(n, n_cameras, seed, sh_degree):
     opacities = 0.05 + 0.9 * torch.rand(n, generator=g)
     colors = (torch.randn(n, (sh_degree + 1) ** 2, 3, generator=g) * 0.4 if sh_degree is not None
               else torch.rand(n, 3, generator=g))
-    viewmats = torch.eye(4).repeat(n_cameras, 1, 1)
-    for c in range(n_cameras):
-        angle = 0.12 * c
-        viewmats[c, :3, :3] = torch.tensor([[math.cos(angle), 0, math.sin(angle)], [0, 1, 0],
-                                            [-math.sin(angle), 0, math.cos(angle)]])
-        viewmats[c, :3, 3] = torch.tensor([0.1 * c, -0.05 * c, 0.2 * c])
+    viewmats = turning_viewmats(n_cameras, 0.12)
     return means, quats, scales, opacities, colors, viewmats
 
 
