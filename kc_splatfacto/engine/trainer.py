@@ -302,39 +302,43 @@ class Trainer:
         bad = [k for (k, _), v in zip(params, peaks.tolist()) if not (math.isfinite(v) and v < GRAD_OVERFLOW)]
         return f"non-finite or overflowing gradient of {bad}"
 
+    def _forward_backward(self, step: int) -> tuple[str | None, Any, dict[str, torch.Tensor], Any]:
+        """Render, losses and gradients of step ``step``: (why the step must be skipped or None, outputs, loss dict,
+        batch). Non-finite Gaussians are removed here: found by the rasterizer while it reads them
+        (``NonFiniteInputError``) and by a full scan every ``PARAMETER_SCAN_EVERY`` steps for values that render
+        finitely (an infinite opacity logit, ...)."""
+        model = self.model
+        removed = 0
+        if step % PARAMETER_SCAN_EVERY == 0:
+            removed = model.remove_non_finite_gaussians(self.optimizers)
+            self._lap("optimizer")
+        if removed:  # the step is skipped before its training view is drawn: the view goes to the next step
+            return f"non-finite parameters: {removed} Gaussians removed", None, {}, None
+        try:
+            outputs, loss_dict, batch = self.pipeline.get_train_loss_dict(step, lap=self._lap)
+        except NonFiniteInputError:
+            removed = model.remove_non_finite_gaussians(self.optimizers)
+            if not removed:  # a non-finite camera, not a parameter: a real error
+                raise
+            return f"non-finite parameters: {removed} Gaussians removed", None, {}, None
+        if loss_dict is None:
+            return "non-finite render", outputs, {}, batch
+        loss = torch.stack(list(loss_dict.values())).sum()
+        if not bool(torch.isfinite(loss)):
+            terms = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in loss_dict.items())
+            return f"non-finite loss ({terms})", outputs, loss_dict, batch
+        self._log_gradient_shares(step + 1, loss_dict, outputs["rgb"])
+        self._lap_start = time.perf_counter()  # the shares are logging, not a phase of the step
+        loss.backward()
+        self._lap("backward")
+        return self._grad_problem(), outputs, loss_dict, batch
+
     def train_iteration(self, step: int) -> dict[str, Any]:
         """Take optimization step ``step`` (0-based). Returns the loss dict as floats (empty for a skipped step)."""
         model = self.model
         model.step = step
-        bad = None
         self._lap_start = time.perf_counter()
-        removed = 0
-        if step % PARAMETER_SCAN_EVERY == 0:  # values that render finitely (an infinite opacity logit, ...)
-            removed = model.remove_non_finite_gaussians(self.optimizers)
-            self._lap("optimizer")
-        if removed:  # the step is skipped before its training view is drawn: the view goes to the next step
-            bad = f"non-finite parameters: {removed} Gaussians removed"
-        else:
-            try:
-                outputs, loss_dict, batch = self.pipeline.get_train_loss_dict(step, lap=self._lap)
-            except NonFiniteInputError:  # the rasterizer found NaN/inf in what it read
-                removed = model.remove_non_finite_gaussians(self.optimizers)
-                if not removed:  # a non-finite camera, not a parameter: a real error
-                    raise
-                bad = f"non-finite parameters: {removed} Gaussians removed"
-            else:
-                if loss_dict is None:
-                    bad = "non-finite render"
-                else:
-                    loss = torch.stack(list(loss_dict.values())).sum()
-                    if not bool(torch.isfinite(loss)):
-                        bad = "non-finite loss (" + ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in loss_dict.items()) + ")"
-                    else:
-                        self._log_gradient_shares(step + 1, loss_dict, outputs["rgb"])
-                        self._lap_start = time.perf_counter()  # the shares are logging, not a phase of the step
-                        loss.backward()
-                        self._lap("backward")
-                        bad = self._grad_problem()
+        bad, outputs, loss_dict, batch = self._forward_backward(step)
         if bad is None:
             for optimizer in self.optimizers.values():
                 optimizer.step()
