@@ -264,10 +264,12 @@ class TransformsDataParser(DataParser):
         )
         if self.config.load_3d_points and "ply_file_path" in meta:
             ply = inside_folder(base, meta["ply_file_path"], f"{json_path} ply_file_path", self.config.allow_symlinks_out)
-            if not ply.is_file():
-                raise DataParserError(f"ply_file_path {ply} does not exist: fix the path in transforms.json or remove it")
             try:
                 xyz, rgb = read_ply_points(ply)
+            except FileNotFoundError as exc:
+                raise DataParserError(
+                    f"ply_file_path {ply} does not exist: fix the path in transforms.json or remove it"
+                ) from exc
             except ValueError as exc:
                 raise DataParserError(f"could not read the point cloud {ply}: {exc}") from exc
             outputs.points3d_xyz = torch.from_numpy(normalization.apply_to_points(xyz).astype(np.float32))
