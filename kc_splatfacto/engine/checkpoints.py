@@ -11,7 +11,6 @@ from __future__ import annotations
 import errno
 import pickle
 import re
-import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -126,7 +125,8 @@ def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> dic
             f"checkpoint {path} is truncated or not a checkpoint ({str(exc)[:200]}): resume from an older step "
             "with --load-step, or delete it"
         ) from exc
-    except (RuntimeError, EOFError, zipfile.BadZipFile, ValueError, OSError) as exc:
+    except Exception as exc:  # noqa: BLE001  garbage bytes fail in the unpickler in any way (IndexError, KeyError,
+        # struct.error, EOFError, BadZipFile, ...): all of them mean the file is not a readable checkpoint
         raise CheckpointError(
             f"checkpoint {path} is truncated or not a checkpoint ({type(exc).__name__}: {str(exc)[:200]}): "
             "resume from an older step with --load-step, or delete it"

@@ -7,6 +7,7 @@ import errno
 import hashlib
 import json
 import os
+import random
 import signal
 from pathlib import Path
 
@@ -190,6 +191,13 @@ def test_truncated_and_garbage_checkpoints_are_named(finished_run, tmp_path):
     garbage.write_bytes(os.urandom(4096))
     with pytest.raises(CheckpointError, match=f"checkpoint {garbage} is truncated or not a checkpoint"):
         load_checkpoint(garbage)
+    # bytes that make the unpickler fail with IndexError, KeyError and struct.error (not unpickling errors)
+    for name, data in (("index", random.Random(2).randbytes(4096)), ("key", random.Random(20).randbytes(4096)),
+                       ("struct", b"\x80\x02}q\x00(X")):
+        odd = tmp_path / f"{name}.ckpt"
+        odd.write_bytes(data)
+        with pytest.raises(CheckpointError, match=f"checkpoint {odd} is truncated or not a checkpoint"):
+            load_checkpoint(odd)
     not_ours = tmp_path / "other.ckpt"
     torch.save({"weights": torch.ones(2)}, not_ours)
     with pytest.raises(CheckpointError, match="not a kc-splatfacto checkpoint"):
