@@ -193,75 +193,18 @@ def _index_tensor(n: int, filter_len: int, mode: str, device: torch.device) -> T
     return index
 
 
-class _SymmetricPad2d(torch.autograd.Function):
-    """Half-sample symmetric extension of both spatial axes (needs before, after <= size).
-
-    Forward is slices, flips and cats; the backward folds the border gradients back onto the image in place. (Plain
-    autograd through the slices would allocate and zero-fill a full-size gradient per slice: 4 extra passes.)
-    """
-
-    @staticmethod
-    def forward(ctx, x: Tensor, before: int, after: int) -> Tensor:
-        ctx.pads = (before, after)
-        height, width = x.shape[-2:]
-        # one full-size copy (two cats would make two); the borders are small copies of flipped strips
-        out = x.new_empty((*x.shape[:-2], height + before + after, width + before + after))
-        out[..., before : before + height, before : before + width] = x
-        out[..., :before, before : before + width] = x[..., :before, :].flip(-2)
-        out[..., before + height :, before : before + width] = x[..., height - after :, :].flip(-2)
-        out[..., :, :before] = out[..., :, before : 2 * before].flip(-1)
-        out[..., :, before + width :] = out[..., :, before + width - after : before + width].flip(-1)
-        return out
-
-    @staticmethod
-    def backward(ctx, grad: Tensor):
-        before, after = ctx.pads
-        return _fold_symmetric(grad, before, after), None, None
-
-
-def _fold_symmetric(grad: Tensor, before: int, after: int) -> Tensor:
-    """Adjoint of the symmetric extension: [.., H + b + a, W + b + a] -> [.., H, W] (differentiable torch ops)."""
-    height = grad.shape[-2] - before - after
-    width = grad.shape[-1] - before - after
-    folded = grad[..., before : before + height, before : before + width].clone()
-    rows = grad[..., before : before + height, :]
-    if before:
-        folded[..., :, :before] += rows[..., :before].flip(-1)
-    if after:
-        folded[..., :, width - after :] += rows[..., before + width :].flip(-1)
-    cols = grad[..., :, before : before + width]
-    if before:
-        folded[..., :before, :] += cols[..., :before, :].flip(-2)
-        # corners: extended on both axes
-        folded[..., :before, :before] += grad[..., :before, :before].flip(-2, -1)
-        if after:
-            folded[..., :before, width - after :] += grad[..., :before, before + width :].flip(-2, -1)
-    if after:
-        folded[..., height - after :, :] += cols[..., before + height :, :].flip(-2)
-        folded[..., height - after :, width - after :] += grad[..., before + height :, before + width :].flip(-2, -1)
-        if before:
-            folded[..., height - after :, :before] += grad[..., before + height :, :before].flip(-2, -1)
-    return folded
-
-
-def _symmetric_pad(x: Tensor, before: int, after: int) -> Tensor:
-    return _SymmetricPad2d.apply(x, before, after)
-
-
 def _pad(x: Tensor, filter_len: int, mode: str) -> Tensor:
     """Extend [N, 1, H, W] on both spatial axes so a valid stride-2 correlation yields one DWT level.
 
-    Fast paths (F.pad / slices, ~3x cheaper than a gather forward and backward) whenever the extension is shorter
-    than the axis, which `dwt_max_level` guarantees for every level it keeps; the index gather covers the rest.
+    The torch path of every device but the CPU (where `_ExtendedLevel` does extension and correlation together):
+    F.pad where it builds the same extension, two index gathers otherwise. On a GPU the step is bound by kernel
+    launches, not passes: the two-gather path (2 launches forward, 2 backward) beat a slice/flip path (~9 forward,
+    ~14 backward) for the symmetric mode; measured on an H100 (docs/results/gpu/README.md).
     """
     height, width = x.shape[-2:]
     before, after = filter_len - 2, filter_len - 1
     if mode == "zero":
         return F.pad(x, (before, after, before, after))
-    # On a GPU the step is bound by kernel launches, not passes: the two-gather path (2 launches forward, 2 backward)
-    # beats the slice/flip fast path (~9 forward, ~14 backward); measured on an H100 (docs/results/gpu/README.md).
-    if mode == "symmetric" and after <= min(height, width) and x.device.type == "cpu":
-        return _symmetric_pad(x, before, after)
     if mode == "reflect" and after < min(height, width):
         return F.pad(x, (before, after, before, after), mode="reflect")
     if mode == "periodization":
@@ -277,6 +220,79 @@ def _pad(x: Tensor, filter_len: int, mode: str) -> Tensor:
     rows = _index_tensor(height, filter_len, mode, x.device)
     cols = _index_tensor(width, filter_len, mode, x.device)
     return x.index_select(-2, rows).index_select(-1, cols)
+
+
+_PHASE_CACHE: dict[tuple, Tensor] = {}
+
+
+def _phase_bank(wave: str, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """[4, 4, L/2, L/2] weights that turn the adjoint of the stride-2 correlation with the analysis bank into one
+    stride-1 convolution (polyphase form).
+
+    grad_ext[2r + a, 2s + b] = sum_{c,i,j} bank[c, a + 2i, b + 2j] grad_out[c, r - i, s - j] for the four parities
+    (a, b): output channel 2a + b of `conv2d(grad_out, phase_bank, padding=L/2 - 1)` at (r, s). On CPU this is ~2-3x
+    faster than torch's transposed convolution (the strided-conv backward), which takes a slow path for 1 input
+    channel and stride 2.
+    """
+    key = (wave, dtype, device)
+    phases = _PHASE_CACHE.get(key)
+    if phases is None:
+        bank = _filter_bank_np(wave)[:, 0]  # [4, L, L]
+        half = bank.shape[-1] // 2
+        phases_np = np.empty((4, 4, half, half))
+        for a in range(2):
+            for b in range(2):
+                # tap i' of the correlation reads grad_out[r - (half - 1 - i')]: filter rows a + 2 (half - 1 - i')
+                phases_np[2 * a + b] = bank[:, a::2, b::2][:, ::-1, ::-1]
+        phases = torch.as_tensor(phases_np.copy(), dtype=dtype, device=device)
+        _PHASE_CACHE[key] = phases
+    return phases
+
+
+class _ExtendedLevel(torch.autograd.Function):
+    """One DWT level on CPU: x [N, 1, H, W] -> conv2d(extend(x), bank, stride=2) [N, 4, h, w], extension by index maps.
+
+    Forward: one gather pass builds the extended image (``_dwt_kernels.gather_extension``), then torch's strided
+    conv. Backward: the polyphase convolution (`_phase_bank`) and one scatter pass that folds the extension back
+    (``_dwt_kernels.scatter_phases``). Same values as the torch path (`_pad` + conv2d) up to float rounding of the
+    gradient's summation order; float64 gradcheck passes (tests/losses/test_wavelets.py).
+    """
+
+    @staticmethod
+    def forward(ctx, x: Tensor, bank: Tensor, phases: Tensor, rows: Tensor, cols: Tensor) -> Tensor:
+        from kc_splatfacto.losses._dwt_kernels import gather_extension
+
+        count, _, height, width = x.shape
+        extended = x.new_empty((count, 1, rows.numel(), cols.numel()))
+        gather_extension(x.detach()[:, 0].numpy(), rows.numpy(), cols.numpy(), extended[:, 0].numpy())
+        ctx.save_for_backward(phases, rows, cols)
+        ctx.image_shape = (count, 1, height, width)
+        return F.conv2d(extended, bank, stride=2)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad: Tensor):
+        from kc_splatfacto.losses._dwt_kernels import scatter_phases
+
+        phases, rows, cols = ctx.saved_tensors
+        by_parity = F.conv2d(grad.contiguous(), phases, padding=phases.shape[-1] - 1)  # [N, 4, h2, w2]
+        grad_x = grad.new_zeros(ctx.image_shape)
+        scatter_phases(by_parity.numpy(), rows.numpy(), cols.numpy(), grad_x[:, 0].numpy())
+        return grad_x, None, None, None, None
+
+
+# modes whose extension is an index map (zero padding is not: it inserts values)
+_INDEX_MODES = ("symmetric", "reflect", "periodization")
+
+
+def _level(x: Tensor, wave: str, filter_len: int, mode: str, bank: Tensor) -> Tensor:
+    """One DWT level of x [N, 1, H, W]: [N, 4, h, w] = (cA, cH, cV, cD)."""
+    if x.device.type == "cpu" and mode in _INDEX_MODES:
+        # (periodization's index map repeats the last sample of an odd axis itself, as PyWavelets does)
+        rows = _index_tensor(x.shape[-2], filter_len, mode, x.device)
+        cols = _index_tensor(x.shape[-1], filter_len, mode, x.device)
+        return _ExtendedLevel.apply(x, bank, _phase_bank(wave, x.dtype, x.device), rows, cols)
+    return F.conv2d(_pad(x, filter_len, mode), bank, stride=2)
 
 
 # --------------------------------------------------------------------------------------------------- transform
@@ -324,7 +340,7 @@ def dwt2(x: Tensor, wave: str = "db3", levels: int = 3, mode: str = "symmetric")
     current = x.to(dtype).reshape(batch * channels, 1, height, width)
     details = []
     for _ in range(kept):
-        out = F.conv2d(_pad(current, flen, mode), bank, stride=2)  # [B*C, 4, h, w]
+        out = _level(current, wave, flen, mode, bank)  # [B*C, 4, h, w]
         h, w = out.shape[-2:]
         # split, not two slices: its backward is one cat instead of two zero-filled full-size buffers
         current, detail = out.split([1, 3], dim=1)
