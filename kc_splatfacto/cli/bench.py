@@ -11,8 +11,9 @@ rewritten after every finished run, so an interrupted benchmark still leaves the
 folder already holds its final evaluation is reused as it is; an interrupted run (its folder holds a checkpoint,
 written every ``--steps-per-save`` steps) continues from its last checkpoint in the same folder, its
 ``metrics.jsonl`` first cut back to that step so that nothing is logged twice; an interrupted run without a
-checkpoint starts again (its old log kept as ``metrics.interrupted.jsonl``). A run folder whose ``config.yml`` holds
-another model config or seed than the command asks for is an error, not silently mixed in.
+checkpoint starts again (its old log kept as ``metrics.interrupted.jsonl``). A run folder, finished or not, whose
+``config.yml`` holds another model config, seed, optimizer, scene or dataparser setting than the command asks for is
+an error, not silently mixed in.
 
 Example (the committed castle-P30 result)::
 
@@ -121,34 +122,52 @@ def build_run_config(
     return config
 
 
+def check_same_settings(run_dir: Path, config: Any) -> None:
+    """A run folder the study would reuse or continue must have been trained with the settings ``config`` asks for:
+    model, seed, optimizers, scene and dataparser with its settings (e.g. the downscale factor), as its
+    ``config.yml`` records them. Anything else is a :class:`BenchArgumentError` naming the folder and what differs,
+    never a finished run of another setting silently reported as this one."""
+    import dataclasses
+
+    from kc_splatfacto.engine.config import load_config
+    from kc_splatfacto.engine.run_guard import _dataparser, differences
+
+    saved_path = run_dir / "config.yml"
+    if not saved_path.is_file():
+        return
+    saved = load_config(saved_path)
+
+    def parser_settings(parser: Any) -> dict:
+        settings = dataclasses.asdict(parser) if dataclasses.is_dataclass(parser) else {}
+        settings.pop("data", None)  # the scene path is compared by run_guard.differences (absolute)
+        return settings
+
+    mismatch = [
+        name for name, a, b in (
+            ("pipeline.model", dataclasses.asdict(saved.pipeline.model), dataclasses.asdict(config.pipeline.model)),
+            ("machine.seed", saved.machine.seed, config.machine.seed),
+            ("optimizers", dataclasses.asdict(saved.optimizers), dataclasses.asdict(config.optimizers)),
+            ("dataparser settings", parser_settings(_dataparser(saved)), parser_settings(_dataparser(config))),
+        ) if a != b
+    ] + differences(saved, config)
+    if mismatch:
+        raise BenchArgumentError(
+            f"--resume: {run_dir} was trained with another {', '.join(mismatch)} than this command asks for; "
+            f"rerun with the original command, or pass another --runs-dir"
+        )
+
+
 def resume_point(run_dir: Path, config: Any) -> Path | None:
     """Prepare an interrupted run folder for ``--resume``: the checkpoint to continue from, or None (start again).
 
-    The folder's ``config.yml`` must describe the same model and seed as ``config`` (else ValueError). Records logged
-    after the checkpoint's step are cut from ``metrics.jsonl`` (atomically), since the resumed run logs them again;
-    without a checkpoint the log is moved aside to ``metrics.interrupted.jsonl`` and the run starts from scratch.
+    The folder must hold a run of the same settings (:func:`check_same_settings`). Records logged after the
+    checkpoint's step are cut from ``metrics.jsonl`` (atomically), since the resumed run logs them again; without a
+    checkpoint the log is moved aside to ``metrics.interrupted.jsonl`` and the run starts from scratch.
     """
-    import dataclasses
-
     from kc_splatfacto.atomic import atomic_write_text
     from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, CHECKPOINT_PATTERN, list_checkpoints
-    from kc_splatfacto.engine.config import load_config
 
-    saved_path = run_dir / "config.yml"
-    if saved_path.is_file():
-        saved = load_config(saved_path)
-        mismatch = [
-            name for name, a, b in (
-                ("pipeline.model", dataclasses.asdict(saved.pipeline.model), dataclasses.asdict(config.pipeline.model)),
-                ("machine.seed", saved.machine.seed, config.machine.seed),
-                ("optimizers", dataclasses.asdict(saved.optimizers), dataclasses.asdict(config.optimizers)),
-            ) if a != b
-        ]
-        if mismatch:
-            raise BenchArgumentError(
-                f"--resume: {run_dir} was trained with another {', '.join(mismatch)} than this command asks for; "
-                f"rerun with the original command, or pass another --runs-dir"
-            )
+    check_same_settings(run_dir, config)
     log = run_dir / "metrics.jsonl"
     checkpoints = list_checkpoints(run_dir / CHECKPOINT_DIR)
     if not checkpoints:
@@ -225,6 +244,7 @@ def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
                 start = time.perf_counter()
                 status = "trained"
                 if args.resume and _finished(expected_dir, args.max_num_iterations):
+                    check_same_settings(expected_dir, config)
                     run_dir, status = expected_dir, "reused"
                 else:
                     if args.resume and expected_dir.is_dir():

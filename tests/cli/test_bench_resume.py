@@ -86,3 +86,19 @@ def test_resume_refuses_a_run_folder_with_another_config(tmp_path, monkeypatch, 
     assert _bench(out, ["--resume", *other]) == 2
     err = capsys.readouterr().err
     assert "pipeline.model" in err and "seed0" in err and "--runs-dir" in err
+
+
+@pytest.mark.parametrize("change", [["pipeline.model.ssim_lambda=0.5"], ["--downscale-factor", "2"]])
+def test_resume_refuses_to_reuse_a_finished_run_of_other_settings(tmp_path, capsys, change):
+    # a finished run is reused only when it was trained as this command asks: another model setting or another
+    # dataparser setting (the image downscale) is an error naming the folder, not a silent reuse
+    out = tmp_path / "study"
+    args = [*ARGS]
+    args[args.index("--methods") + 1: args.index("--seeds")] = ["splatfacto"]
+    assert bench.entrypoint([*args, "--output-dir", str(out)]) == 0
+    assert bench.entrypoint([*args, "--output-dir", str(out), "--resume"]) == 0  # same settings: reused
+    assert json.loads((out / "runs.json").read_text())[0]["status"] == "reused"
+    capsys.readouterr()
+    assert bench.entrypoint([*args, *change, "--output-dir", str(out), "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert "seed0" in err and "--runs-dir" in err
