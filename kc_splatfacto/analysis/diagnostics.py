@@ -33,13 +33,22 @@ def band_labels(num_bands: int) -> list[str]:
 
 
 def kurtosis_history(records: Iterable[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Steps [T], render kurtosis [T, B] and GT kurtosis [T, B] from the train records that carry them."""
+    """Steps [T], render kurtosis [T, B] and GT kurtosis [T, B] from the train records that carry them.
+
+    Under Splatfacto's resolution schedule the early records are of a downscaled image, whose level j is another
+    scale than the full-resolution level j (and fewer levels fit): only the records at the run's finest training
+    resolution (the smallest ``train_downscale`` logged) are returned.
+    """
+    carrying = [
+        r for r in records
+        if r.get("kind", "train") == "train" and r.get("kurtosis_render") is not None and r.get("kurtosis_gt") is not None
+    ]
+    downscales = [r["train_downscale"] for r in carrying if r.get("train_downscale") is not None]
+    if downscales:
+        finest = min(downscales)
+        carrying = [r for r in carrying if r.get("train_downscale", finest) == finest]
     steps, render, gt = [], [], []
-    for record in records:
-        if record.get("kind", "train") != "train":
-            continue
-        if record.get("kurtosis_render") is None or record.get("kurtosis_gt") is None:
-            continue
+    for record in carrying:
         steps.append(int(record["step"]))
         render.append([float(v) for v in record["kurtosis_render"]])
         gt.append([float(v) for v in record["kurtosis_gt"]])

@@ -67,6 +67,18 @@ def test_kurtosis_history_plot(tmp_path):
     assert diagnostics.band_labels(9)[:4] == ["L1 LH", "L1 HL", "L1 HH", "L2 LH"]
 
 
+def test_kurtosis_history_keeps_the_finest_training_resolution():
+    # Splatfacto's resolution schedule: 2 levels at 1/4 resolution, then 3 levels at 1/2 and at full resolution;
+    # level j of a downscaled image is another scale, so only the full-resolution records make the history
+    records = []
+    for step, downscale, bands in [(10, 4, 6), (20, 4, 6), (30, 2, 9), (40, 1, 9), (50, 1, 9)]:
+        records.append({"kind": "train", "step": step, "train_downscale": downscale,
+                        "kurtosis_render": [float(step)] * bands, "kurtosis_gt": [1.0] * bands})
+    steps, render, gt = diagnostics.kurtosis_history(records)
+    assert steps.tolist() == [40, 50] and render.shape == gt.shape == (2, 9)
+    assert render[:, 0].tolist() == [40.0, 50.0]
+
+
 def test_bad_inputs():
     with pytest.raises(ValueError, match="kurtosis_render"):
         diagnostics.kurtosis_history([{"kind": "train", "step": 1}])
