@@ -130,26 +130,19 @@ def check_same_settings(run_dir: Path, config: Any) -> None:
     import dataclasses
 
     from kc_splatfacto.engine.config import load_config
-    from kc_splatfacto.engine.run_guard import _dataparser, differences
+    from kc_splatfacto.engine.run_guard import differences
 
     saved_path = run_dir / "config.yml"
     if not saved_path.is_file():
         return
     saved = load_config(saved_path)
-
-    def parser_settings(parser: Any) -> dict:
-        settings = dataclasses.asdict(parser) if dataclasses.is_dataclass(parser) else {}
-        settings.pop("data", None)  # the scene path is compared by run_guard.differences (absolute)
-        return settings
-
     mismatch = [
         name for name, a, b in (
             ("pipeline.model", dataclasses.asdict(saved.pipeline.model), dataclasses.asdict(config.pipeline.model)),
             ("machine.seed", saved.machine.seed, config.machine.seed),
             ("optimizers", dataclasses.asdict(saved.optimizers), dataclasses.asdict(config.optimizers)),
-            ("dataparser settings", parser_settings(_dataparser(saved)), parser_settings(_dataparser(config))),
         ) if a != b
-    ] + differences(saved, config)
+    ] + differences(saved, config, parser_settings=True)
     if mismatch:
         raise BenchArgumentError(
             f"--resume: {run_dir} was trained with another {', '.join(mismatch)} than this command asks for; "

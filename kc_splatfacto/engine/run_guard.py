@@ -14,6 +14,7 @@ records written after the checkpoint (they will be written again), so the log ha
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import tempfile
@@ -100,8 +101,9 @@ def scene_of(config: Any, parser: Any = None) -> str | None:
     return str(Path(data).expanduser().absolute())
 
 
-def differences(stored: Any, current: Any) -> list[str]:
-    """What makes ``current`` another run than ``stored``: method, scene, dataparser."""
+def differences(stored: Any, current: Any, parser_settings: bool = False) -> list[str]:
+    """What makes ``current`` another run than ``stored``: method, scene, dataparser; with ``parser_settings`` also
+    the dataparser's settings (e.g. its downscale factor; the scene path is compared as the scene)."""
     found = []
     if stored.method_name != current.method_name:
         found.append(f"method {stored.method_name} vs {current.method_name}")
@@ -112,6 +114,12 @@ def differences(stored: Any, current: Any) -> list[str]:
     stored_name, current_name = type(stored_parser).__name__, type(current_parser).__name__
     if stored_name != current_name:
         found.append(f"dataparser {stored_name} vs {current_name}")
+    elif parser_settings and dataclasses.is_dataclass(stored_parser) and dataclasses.is_dataclass(current_parser):
+        stored_fields, current_fields = dataclasses.asdict(stored_parser), dataclasses.asdict(current_parser)
+        changed = [f"{k} {stored_fields[k]} vs {v}" for k, v in current_fields.items()
+                   if k != "data" and stored_fields.get(k) != v]
+        if changed:
+            found.append(f"dataparser settings ({', '.join(changed)})")
     return found
 
 
