@@ -119,16 +119,9 @@ def _filter_bank_np(wave: str) -> np.ndarray:
     return np.stack([np.outer(fh, fw) for fh, fw in pairs])[:, None]
 
 
-_BANK_CACHE: dict[tuple, Tensor] = {}
-
-
+@functools.cache
 def _filter_bank(wave: str, dtype: torch.dtype, device: torch.device) -> Tensor:
-    key = (wave, dtype, device)
-    bank = _BANK_CACHE.get(key)
-    if bank is None:
-        bank = torch.as_tensor(_filter_bank_np(wave), dtype=dtype, device=device)
-        _BANK_CACHE[key] = bank
-    return bank
+    return torch.as_tensor(_filter_bank_np(wave), dtype=dtype, device=device)
 
 
 # --------------------------------------------------------------------------------------------------- levels
@@ -153,9 +146,6 @@ def coeff_length(n: int, filter_len: int, mode: str) -> int:
 
 
 # --------------------------------------------------------------------------------------------------- padding
-
-_INDEX_CACHE: dict[tuple, Tensor] = {}
-
 
 def _extension_index(n: int, filter_len: int, mode: str) -> np.ndarray:
     """Indices into an axis of length n whose gather is the extended axis one stride-2 correlation needs.
@@ -184,20 +174,16 @@ def _extension_index(n: int, filter_len: int, mode: str) -> np.ndarray:
     raise ValueError(f"no index map for mode '{mode}'")
 
 
+@functools.cache
 def _index_tensor(n: int, filter_len: int, mode: str, device: torch.device) -> Tensor:
-    key = (n, filter_len, mode, device)
-    index = _INDEX_CACHE.get(key)
-    if index is None:
-        index = torch.as_tensor(_extension_index(n, filter_len, mode), dtype=torch.long, device=device)
-        _INDEX_CACHE[key] = index
-    return index
+    return torch.as_tensor(_extension_index(n, filter_len, mode), dtype=torch.long, device=device)
 
 
 def _pad(x: Tensor, filter_len: int, mode: str) -> Tensor:
     """Extend [N, 1, H, W] on both spatial axes so a valid stride-2 correlation yields one DWT level.
 
-    The torch path of every device but the CPU (where `_ExtendedLevel` does extension and correlation together):
-    F.pad where it builds the same extension, two index gathers otherwise. On a GPU the step is bound by kernel
+    The torch path: every mode on devices other than the CPU, and the zero mode on the CPU (`_ExtendedLevel` does
+    the other modes there). F.pad where it builds the same extension, two index gathers otherwise. On a GPU the step is bound by kernel
     launches, not passes: the two-gather path (2 launches forward, 2 backward) beat a slice/flip path (~9 forward,
     ~14 backward) for the symmetric mode; measured on an H100 (docs/results/gpu/README.md).
     """
@@ -222,9 +208,7 @@ def _pad(x: Tensor, filter_len: int, mode: str) -> Tensor:
     return x.index_select(-2, rows).index_select(-1, cols)
 
 
-_PHASE_CACHE: dict[tuple, Tensor] = {}
-
-
+@functools.cache
 def _phase_bank(wave: str, dtype: torch.dtype, device: torch.device) -> Tensor:
     """[4, 4, L/2, L/2] weights that turn the adjoint of the stride-2 correlation with the analysis bank into one
     stride-1 convolution (polyphase form).
@@ -234,19 +218,14 @@ def _phase_bank(wave: str, dtype: torch.dtype, device: torch.device) -> Tensor:
     faster than torch's transposed convolution (the strided-conv backward), which takes a slow path for 1 input
     channel and stride 2.
     """
-    key = (wave, dtype, device)
-    phases = _PHASE_CACHE.get(key)
-    if phases is None:
-        bank = _filter_bank_np(wave)[:, 0]  # [4, L, L]
-        half = bank.shape[-1] // 2
-        phases_np = np.empty((4, 4, half, half))
-        for a in range(2):
-            for b in range(2):
-                # tap i' of the correlation reads grad_out[r - (half - 1 - i')]: filter rows a + 2 (half - 1 - i')
-                phases_np[2 * a + b] = bank[:, a::2, b::2][:, ::-1, ::-1]
-        phases = torch.as_tensor(phases_np.copy(), dtype=dtype, device=device)
-        _PHASE_CACHE[key] = phases
-    return phases
+    bank = _filter_bank_np(wave)[:, 0]  # [4, L, L]
+    half = bank.shape[-1] // 2
+    phases = np.empty((4, 4, half, half))
+    for a in range(2):
+        for b in range(2):
+            # tap i' of the correlation reads grad_out[r - (half - 1 - i')]: filter rows a + 2 (half - 1 - i')
+            phases[2 * a + b] = bank[:, a::2, b::2][:, ::-1, ::-1]
+    return torch.as_tensor(phases, dtype=dtype, device=device)
 
 
 class _ExtendedLevel(torch.autograd.Function):
