@@ -71,3 +71,8 @@ ablation_scaled_cbc = MethodSpecification(
     config=_trainer("kc-ablation-scaled-cbc", **{**KC_DEFAULTS, "cbc_correlation": True}),
     description="ablation L1+SSIM+KC+(Scaled)CBC+Wavelets: KC-3DGS with CBC on correlations",
 )
+kc_splatfacto_corr = MethodSpecification(
+    config=_trainer("kc-splatfacto-corr", **{**KC_DEFAULTS, "cbc_correlation": True}),
+    description="KC-3DGS tuned on castle-P30: the paper's weights with the CBC on band correlations "
+                "(docs/results/castle-P30-sweep)",
+)

@@ -1,6 +1,7 @@
 """Method discovery: the built-in methods, a throwaway installed distribution's entry point, the environment variable,
 and the dotted command-line overrides of ``kc-train``."""
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -14,7 +15,7 @@ from kc_splatfacto.registry import discover_methods
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
 BUILT_IN = ["splatfacto", "kc-splatfacto", "kc-splatfacto-fine", "kc-ablation-l1-wavelet", "kc-ablation-wavelet",
-            "kc-ablation-unscaled-wavelet", "kc-ablation-heavy-wavelet", "kc-ablation-scaled-cbc"]
+            "kc-ablation-unscaled-wavelet", "kc-ablation-heavy-wavelet", "kc-ablation-scaled-cbc", "kc-splatfacto-corr"]
 
 
 def run_help(extra_path: Path | None = None, env_extra: dict | None = None) -> str:
@@ -41,6 +42,9 @@ def test_builtin_methods_are_registered_with_the_papers_weights():
     assert methods["kc-ablation-l1-wavelet"].config.pipeline.model.ssim_lambda == 0.0
     assert methods["kc-ablation-unscaled-wavelet"].config.pipeline.model.wavelet_weighting == "uniform"
     assert methods["kc-ablation-scaled-cbc"].config.pipeline.model.cbc_correlation
+    # the tuned method is the paper's settings with one change: the CBC on correlations
+    corr = methods["kc-splatfacto-corr"].config.pipeline.model
+    assert corr == dataclasses.replace(kc, cbc_correlation=True)
     for name in BUILT_IN:
         assert methods[name].config.method_name == name
 
