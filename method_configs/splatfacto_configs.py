@@ -90,7 +90,12 @@ Evidence (Splatfacto's real schedule cut at 7000 steps, 1/4 resolution, test spl
 - castle-P30, seeds 0-2 (docs/results/castle-P30-7k): against Splatfacto +0.75 dB [95 % t +0.10, +1.40], SSIM +5.0 %,
   LPIPS -9.1 % [-10.8, -7.4]; against the paper's settings +0.18 dB [-0.53, +0.89], not resolved (and chosen on
   this scene);
-- entry-P10, seeds 0-2, no re-tuning (docs/results/entry-P10-7k): the confirmation scene; read the verdict there.
+- entry-P10, seeds 0-2, no re-tuning (docs/results/entry-P10-7k): it does NOT confirm. Against Splatfacto PSNR
+  -0.20 dB [-1.37, +0.97] (mixed sign), SSIM -3.2 % and LPIPS +6.9 % (worse at every seed); against the paper's
+  settings SSIM is worse at every seed. Neither KC-3DGS setting beats Splatfacto on this 5-view scene.
+
+So this is the best setting found on castle-P30, not a setting shown to be better in general; ``kc-splatfacto``
+(the paper's) stays the reference.
 
 Cost: the same statistics as ``kc-splatfacto`` per step, and ~15 % more Gaussians by step 7000 on castle-P30.
 """
