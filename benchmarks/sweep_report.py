@@ -28,14 +28,17 @@ from kc_splatfacto.engine.config import load_config
 from kc_splatfacto.engine.metrics_log import read_metrics
 
 
-def _labelled(spec: str) -> tuple[str, Path]:
+def labelled_run_dir(spec: str, required: tuple[str, ...] = ("config.yml", "metrics.jsonl")) -> tuple[str, Path]:
+    """``LABEL=RUN_DIR`` -> (label, run folder), the folder checked to hold ``required`` (also used by
+    test_views_figure.py); anything else exits with a message naming the argument or the missing file."""
+    script = Path(sys.argv[0]).stem
     label, sep, folder = spec.partition("=")
     if not sep or not label or not folder:
-        raise SystemExit(f"sweep_report: '{spec}' is not LABEL=RUN_DIR")
+        raise SystemExit(f"{script}: '{spec}' is not LABEL=RUN_DIR")
     run_dir = Path(folder)
-    for name in ("config.yml", "metrics.jsonl"):
+    for name in required:
         if not (run_dir / name).is_file():
-            raise SystemExit(f"sweep_report: {run_dir / name} is missing (pass a finished kc-train/kc-bench run folder)")
+            raise SystemExit(f"{script}: {run_dir / name} is missing (pass a finished kc-train/kc-bench run folder)")
     return label, run_dir
 
 
@@ -57,7 +60,7 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--out", required=True, type=Path, help="report folder")
     args = parser.parse_args(argv)
 
-    runs = dict(_labelled(spec) for spec in args.runs)
+    runs = dict(labelled_run_dir(spec) for spec in args.runs)
     if args.baseline not in runs:
         raise SystemExit(f"sweep_report: --baseline {args.baseline} is none of the labels {sorted(runs)}")
     configs = {label: load_config(run_dir / "config.yml") for label, run_dir in runs.items()}
@@ -79,9 +82,10 @@ def main(argv: list[str]) -> int:
         raise SystemExit(f"sweep_report: the runs end at different steps {sorted(budgets)}; compare equal budgets")
 
     paths = write_report(rows, args.out, baseline=args.baseline)
-    (args.out / "settings.md").write_text(settings_table(configs, args.baseline))
+    settings = settings_table(configs, args.baseline)
+    (args.out / "settings.md").write_text(settings)
     shares = plot_gradient_shares(records, args.out / "gradient_shares.png", title=scene)
-    print((args.out / "settings.md").read_text())
+    print(settings)
     print(paths["table"].read_text())
     if shares:
         print(f"gradient shares: {shares}")

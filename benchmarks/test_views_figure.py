@@ -31,24 +31,20 @@ def main(argv: list[str]) -> int:
     from kc_splatfacto.engine.run_io import load_run
     from kc_splatfacto.metrics import psnr
     from kc_splatfacto.model.splatfacto import composite_with_background
+    from sweep_report import labelled_run_dir  # benchmarks/ is on sys.path when this runs as a script
 
-    columns: dict[str, list[np.ndarray]] = {}
-    values: dict[str, list[float]] = {}
+    columns: dict[str, tuple[int, list[np.ndarray], list[float]]] = {}  # label -> (step, renders, PSNRs) per view
     truth: list[np.ndarray] = []
     for spec in args.runs:
-        label, sep, folder = spec.partition("=")
-        if not sep:
-            raise SystemExit(f"test_views_figure: '{spec}' is not LABEL=RUN_DIR")
-        config_path = Path(folder) / "config.yml"
-        if not config_path.is_file():
-            raise SystemExit(f"test_views_figure: {config_path} is missing (pass a finished run folder)")
-        loaded = load_run(config_path, step=args.step, device="cpu")
+        label, folder = labelled_run_dir(spec, required=("config.yml",))
+        loaded = load_run(folder / "config.yml", step=args.step, device="cpu")
         dataset = loaded.test_dataset
         bad = [v for v in args.views if not 0 <= v < len(dataset)]
         if bad:
             raise SystemExit(f"test_views_figure: views {bad} are outside the {len(dataset)} test views of {folder}")
-        columns[f"{label} (step {loaded.step})"] = images = []
-        values[label] = scores = []
+        images: list[np.ndarray] = []
+        scores: list[float] = []
+        columns[label] = (loaded.step, images, scores)
         for k, view in enumerate(args.views):
             rgb, _ = render_view(loaded.model, dataset.cameras, view)
             gt = composite_with_background(dataset.image_float(view), loaded.model.background_color)
@@ -65,20 +61,19 @@ def main(argv: list[str]) -> int:
     fig, axes = plt.subplots(len(args.views), ncols, figsize=(2.6 * ncols, 2.6 * height / width * len(args.views) + 0.4),
                              squeeze=False)
     for row, view in enumerate(args.views):
-        for col, (name, images) in enumerate(columns.items()):
-            label = name.split(" (step")[0]
+        for col, (label, (step, images, scores)) in enumerate(columns.items()):
             axes[row][col].imshow(np.clip(images[row], 0, 1))
-            axes[row][col].set_title(f"{name}\nview {view}: {values[label][row]:.2f} dB", fontsize=7)
+            axes[row][col].set_title(f"{label} (step {step})\nview {view}: {scores[row]:.2f} dB", fontsize=7)
         axes[row][-1].imshow(np.clip(truth[row], 0, 1))
         axes[row][-1].set_title(f"ground truth, view {view}", fontsize=7)
         for ax in axes[row]:
             ax.axis("off")
     fig.tight_layout()
     save_figure(fig, args.out, dpi=130)
-    print("| view | " + " | ".join(values) + " |")
-    print("|---" * (len(values) + 1) + "|")
+    print("| view | " + " | ".join(columns) + " |")
+    print("|---" * (len(columns) + 1) + "|")
     for row, view in enumerate(args.views):
-        print(f"| {view} | " + " | ".join(f"{values[label][row]:.2f}" for label in values) + " |")
+        print(f"| {view} | " + " | ".join(f"{scores[row]:.2f}" for _, _, scores in columns.values()) + " |")
     print(f"wrote {args.out}")
     return 0
 
