@@ -63,9 +63,10 @@ def main() -> int:
     parser.add_argument("--methods", nargs="+", default=["splatfacto", "kc-splatfacto"],
                         help="registered methods; the first is the ratios' baseline")
     args = parser.parse_args()
-    unknown = [m for m in args.methods if m not in discover_methods()]
+    registered = discover_methods()
+    unknown = [m for m in args.methods if m not in registered]
     if unknown:
-        print(f"unknown method(s) {unknown}; registered: {', '.join(discover_methods())}", file=sys.stderr)
+        print(f"unknown method(s) {unknown}; registered: {', '.join(registered)}", file=sys.stderr)
         return 1
     if not args.scene.is_dir():
         print(f"scene {args.scene} not found (set KC_SHARED_DATA to the shared/data folder)", file=sys.stderr)
