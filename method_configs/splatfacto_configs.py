@@ -34,6 +34,9 @@ KC_DEFAULTS = dict(wavelet_weight=1e-3, kc_weight=1e-5, cbc_weight=1e-2, wave="d
                    kc_supervised=True, cbc_supervised=True)
 """the paper's defaults (Method section; supplementary 'Hyperparameter' table)"""
 
+KC_CORRELATION_CBC = {**KC_DEFAULTS, "cbc_correlation": True}
+"""the paper's defaults with the CBC on band correlations: the "(Scaled)CBC" ablation row and kc-splatfacto-corr"""
+
 
 def _trainer(method_name: str, **model_overrides) -> TrainerConfig:
     config = TrainerConfig(method_name=method_name)
@@ -70,11 +73,11 @@ ablation_heavy_wavelet = MethodSpecification(
     description="ablation L1+SSIM+KC+CBC+(Heavy)Wavelets: KC-3DGS with wavelet weight 1e-1",
 )
 ablation_scaled_cbc = MethodSpecification(
-    config=_trainer("kc-ablation-scaled-cbc", **{**KC_DEFAULTS, "cbc_correlation": True}),
+    config=_trainer("kc-ablation-scaled-cbc", **KC_CORRELATION_CBC),
     description="ablation L1+SSIM+KC+(Scaled)CBC+Wavelets: KC-3DGS with CBC on correlations",
 )
 kc_splatfacto_corr = MethodSpecification(
-    config=_trainer("kc-splatfacto-corr", **{**KC_DEFAULTS, "cbc_correlation": True}),
+    config=_trainer("kc-splatfacto-corr", **KC_CORRELATION_CBC),
     description="KC-3DGS tuned on castle-P30: the paper's weights with the CBC on band correlations "
                 "(docs/results/castle-P30-sweep)",
 )
