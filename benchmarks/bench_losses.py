@@ -22,6 +22,7 @@ import warnings  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 import torch.nn.functional as F  # noqa: E402
+from kornia.filters import gaussian_blur2d  # noqa: E402
 
 from kc_splatfacto.losses import FrequencyLoss, dwt2  # noqa: E402
 from kc_splatfacto.losses.wavelets import WaveletCoeffs, _pad, daubechies_filters, filter_length  # noqa: E402
@@ -172,14 +173,9 @@ def padding_table(sigmas=(0.0, 1.5, 3.0)) -> None:
 
 
 def _gaussian_blur(image: torch.Tensor, sigma: float) -> torch.Tensor:
-    radius = int(3 * sigma + 0.5)
-    taps = torch.exp(-0.5 * (torch.arange(-radius, radius + 1, dtype=image.dtype) / sigma) ** 2)
-    taps = taps / taps.sum()
-    channels = image.shape[1]
+    size = 2 * int(3 * sigma + 0.5) + 1
     # reflect borders: the blur itself must not create the border steps the table is about
-    padded = F.pad(image, (radius, radius, radius, radius), mode="reflect")
-    out = F.conv2d(padded, taps.view(1, 1, 1, -1).expand(channels, 1, 1, -1), groups=channels)
-    return F.conv2d(out, taps.view(1, 1, -1, 1).expand(channels, 1, -1, 1), groups=channels)
+    return gaussian_blur2d(image, (size, size), (sigma, sigma), border_type="reflect")
 
 
 def main() -> None:

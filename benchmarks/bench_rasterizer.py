@@ -59,27 +59,10 @@ def random_scene(size: int, n: int, seed: int = SEED):
 
 
 def garden_scene(seed: int = SEED):
-    """gsplat's _helper.load_test_data on CPU: crop to [-2, 2]^3, random unit quats, scales U[1e-4, 0.02],
-    opacities U[0, 1], the points' colours; 3 cameras at 648x420."""
-    import numpy as np
-    import torch
-    import torch.nn.functional as F
+    """gsplat's _helper.load_test_data on CPU (kc_splatfacto.data.gsplat_test_scene); 3 cameras at 648x420."""
+    from kc_splatfacto.data.gsplat_test_scene import load_gsplat_test_scene
 
-    if not GARDEN.exists():
-        raise FileNotFoundError(f"garden scene not found at {GARDEN} (set KC_SHARED_DATA to the shared/data folder)")
-    data = np.load(GARDEN)
-    means = torch.from_numpy(data["means3d"]).float()
-    colors = torch.from_numpy(data["colors"] / 255.0).float()
-    inside = ((means >= -2.0) & (means <= 2.0)).all(dim=-1)
-    means, colors = means[inside], colors[inside]
-    n = means.shape[0]
-    g = torch.Generator().manual_seed(seed)
-    scales = torch.rand(n, 3, generator=g) * (0.02 - 1e-4) + 1e-4
-    quats = F.normalize(torch.randn(n, 4, generator=g), dim=-1)
-    opacities = torch.rand(n, generator=g)
-    return dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
-                viewmats=torch.from_numpy(data["viewmats"]).float(), Ks=torch.from_numpy(data["Ks"]).float(),
-                width=int(data["width"]), height=int(data["height"]))
+    return load_gsplat_test_scene(GARDEN, seed=seed)
 
 
 def make_scene(name: str):

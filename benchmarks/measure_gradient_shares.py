@@ -20,6 +20,7 @@ from pathlib import Path
 
 import kc_splatfacto  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads)
 import torch  # noqa: E402
+from kornia.filters import gaussian_blur2d  # noqa: E402
 
 from kc_splatfacto.data.detect import AutoDataParserConfig  # noqa: E402
 from kc_splatfacto.engine.gradient_shares import gradient_shares  # noqa: E402
@@ -31,15 +32,8 @@ BLUR_SIGMAS = (1.0, 2.0, 4.0)
 
 def gaussian_blur(image: torch.Tensor, sigma: float) -> torch.Tensor:
     """[H, W, 3] -> the same blurred by a separable Gaussian (radius 3 sigma, reflect padding)."""
-    radius = int(round(3 * sigma))
-    x = torch.arange(-radius, radius + 1, dtype=image.dtype)
-    kernel = torch.exp(-(x**2) / (2 * sigma**2))
-    kernel = kernel / kernel.sum()
-    bchw = image.permute(2, 0, 1)[:, None]  # [3, 1, H, W]
-    bchw = torch.nn.functional.pad(bchw, (radius, radius, radius, radius), mode="reflect")
-    bchw = torch.nn.functional.conv2d(bchw, kernel.view(1, 1, 1, -1))
-    bchw = torch.nn.functional.conv2d(bchw, kernel.view(1, 1, -1, 1))
-    return bchw[:, 0].permute(1, 2, 0)
+    size = 2 * int(round(3 * sigma)) + 1
+    return gaussian_blur2d(image.permute(2, 0, 1)[None], (size, size), (sigma, sigma))[0].permute(1, 2, 0)
 
 
 def build(args):

@@ -1,7 +1,6 @@
 """Real data: gsplat's test_garden.npz (a Mip-NeRF 360 point cloud, 3 cameras) through both rasterizer paths.
 
-Gaussians are built from it as gsplat's ``_helper.load_test_data`` does: points cropped to [-2, 2]^3, random
-unit quaternions, scales U[1e-4, 0.02], opacities U[0, 1], colours from the points.
+Gaussians are built from it as gsplat's ``_helper.load_test_data`` does (``kc_splatfacto.data.gsplat_test_scene``).
 """
 
 import functools
@@ -9,8 +8,8 @@ import functools
 import numpy as np
 import pytest
 import torch
-import torch.nn.functional as F
 
+from kc_splatfacto.data.gsplat_test_scene import load_gsplat_test_scene
 from kc_splatfacto.render import rasterization
 
 # Reduced resolution for the comparison with the (slow) torch reference: 1/8 of 648x420.
@@ -24,22 +23,8 @@ def garden(garden_npz):
 
 @functools.lru_cache(maxsize=1)
 def load_garden(path):
-    """gsplat's load_test_data on CPU, with a fixed seed (cached: the tests share one scene)."""
-    data = np.load(path)
-    means = torch.from_numpy(data["means3d"]).float()
-    colors = torch.from_numpy(data["colors"] / 255.0).float()
-    inside = ((means >= -2.0) & (means <= 2.0)).all(dim=-1)
-    means, colors = means[inside], colors[inside]
-    n = means.shape[0]
-    g = torch.Generator().manual_seed(42)
-    scales = torch.rand(n, 3, generator=g) * (0.02 - 1e-4) + 1e-4
-    quats = F.normalize(torch.randn(n, 4, generator=g), dim=-1)
-    opacities = torch.rand(n, generator=g)
-    return dict(
-        means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
-        viewmats=torch.from_numpy(data["viewmats"]).float(), Ks=torch.from_numpy(data["Ks"]).float(),
-        width=int(data["width"]), height=int(data["height"]),
-    )
+    """The scene with a fixed seed (cached: the tests share one scene)."""
+    return load_gsplat_test_scene(path, seed=42)
 
 
 def reduced(garden):
