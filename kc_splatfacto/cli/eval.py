@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 from kc_splatfacto.atomic import atomic_write_text
-from kc_splatfacto.cli.main import check_output_path, run_cli
+from kc_splatfacto.cli.main import add_run_arguments, check_output_path, existing_run_config, run_cli
 from kc_splatfacto.errors import UserError
 
 
@@ -83,9 +83,7 @@ def run_eval(load_config: Path, output_path: Path | None = None, step: int | Non
     """Load a run, evaluate ``split``, write the JSON (when ``output_path``) and return it."""
     from kc_splatfacto.engine.run_io import load_run
 
-    load_config = Path(load_config)
-    if not load_config.is_file():
-        raise UserError(f"kc-eval: --load-config {load_config} does not exist (pass a run's config.yml)")
+    load_config = existing_run_config("kc-eval", load_config)
     loaded = load_run(load_config, step=step, device="cpu")
     evaluation = evaluate_loaded_run(loaded, split)
     config = loaded.config
@@ -114,9 +112,8 @@ def entrypoint(argv: list[str] | None = None) -> int:
 
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="kc-eval", description="Evaluate a trained run on its test split (ns-eval's JSON).")
-    parser.add_argument("--load-config", type=Path, required=True, help="the run's config.yml")
+    add_run_arguments(parser)
     parser.add_argument("--output-path", type=Path, default=Path("metrics.json"), help="where to write the JSON")
-    parser.add_argument("--step", type=int, default=None, help="checkpoint step (default: the latest)")
     parser.add_argument("--split", choices=("test", "train"), default="test")
     args = parser.parse_args(argv)
     check_output_path(args.output_path, "--output-path")

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from kc_splatfacto.cli.main import check_output_path, run_cli
+from kc_splatfacto.cli.main import add_run_arguments, check_output_path, existing_run_config, run_cli
 from kc_splatfacto.errors import UserError
 
 
@@ -15,9 +15,7 @@ def run_export(load_config: Path, output_path: Path, step: int | None = None):
     from kc_splatfacto.engine.run_io import load_run
     from kc_splatfacto.model.ply import export_ply
 
-    load_config = Path(load_config)
-    if not load_config.is_file():
-        raise UserError(f"kc-export: --load-config {load_config} does not exist (pass a run's config.yml)")
+    load_config = existing_run_config("kc-export", load_config)
     check_output_path(output_path, "--output-path")
     loaded = load_run(load_config, step=step, device="cpu")
     params = {name: value.detach() for name, value in loaded.model.gauss_params.items()}
@@ -34,9 +32,8 @@ def entrypoint(argv: list[str] | None = None) -> int:
 
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="kc-export", description="Export a run's Gaussians as a 3DGS PLY (SuperSplat, Inria viewers).")
-    parser.add_argument("--load-config", type=Path, required=True, help="the run's config.yml")
+    add_run_arguments(parser)
     parser.add_argument("--output-path", type=Path, default=Path("splat.ply"), help="the .ply file to write")
-    parser.add_argument("--step", type=int, default=None, help="checkpoint step (default: the latest)")
     args = parser.parse_args(argv)
     result = run_export(args.load_config, args.output_path, args.step)
     note = f", dropped {result.num_dropped} non-finite" if result.num_dropped else ""

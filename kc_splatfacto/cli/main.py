@@ -5,9 +5,11 @@
 
 from __future__ import annotations
 
+import argparse
 import os
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 from kc_splatfacto.errors import UserError
 
@@ -38,10 +40,22 @@ def run_cli(prog: str, main: Callable[[list[str]], int], argv: Sequence[str] | N
         return USER_ERROR_EXIT
 
 
+def add_run_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--load-config`` (required) and ``--step``: how every command that reads a trained run names it."""
+    parser.add_argument("--load-config", type=Path, required=True, help="the run's config.yml")
+    parser.add_argument("--step", type=int, default=None, help="checkpoint step (default: the latest)")
+
+
+def existing_run_config(prog: str, load_config) -> Path:
+    """``load_config`` as a Path; a :class:`UserError` naming ``prog`` when it is not a file."""
+    load_config = Path(load_config)
+    if not load_config.is_file():
+        raise UserError(f"{prog}: --load-config {load_config} does not exist (pass a run's config.yml)")
+    return load_config
+
+
 def check_output_path(path, what: str) -> None:
     """The folder of an output file must be writable: checked before the (slow) run loading."""
-    from pathlib import Path
-
     from kc_splatfacto.engine.run_guard import check_writable_folder
 
     check_writable_folder(Path(path).absolute().parent, f"the folder of {what}")

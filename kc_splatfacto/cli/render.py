@@ -15,7 +15,7 @@ import math
 import sys
 from pathlib import Path
 
-from kc_splatfacto.cli.main import run_cli
+from kc_splatfacto.cli.main import add_run_arguments, existing_run_config, run_cli
 from kc_splatfacto.engine.run_guard import check_writable_folder
 from kc_splatfacto.errors import UserError
 
@@ -139,9 +139,7 @@ def run_render(
 ) -> dict:
     from kc_splatfacto.engine.run_io import load_run
 
-    load_config = Path(load_config)
-    if not load_config.is_file():
-        raise UserError(f"kc-render: --load-config {load_config} does not exist (pass a run's config.yml)")
+    load_config = existing_run_config("kc-render", load_config)
     if video and not (math.isfinite(fps) and fps > 0):
         raise UserError(f"kc-render: --fps must be a positive number, got {fps}")
     if video and num_frames < 1:
@@ -171,9 +169,8 @@ def entrypoint(argv: list[str] | None = None) -> int:
 
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="kc-render", description="Render test views next to GT, and a camera-path video.")
-    parser.add_argument("--load-config", type=Path, required=True, help="the run's config.yml")
+    add_run_arguments(parser)
     parser.add_argument("--output-dir", type=Path, default=Path("renders"))
-    parser.add_argument("--step", type=int, default=None, help="checkpoint step (default: the latest)")
     parser.add_argument("--num-frames", type=int, default=60, help="frames of the path video")
     parser.add_argument("--fps", type=float, default=24.0)
     parser.add_argument("--no-video", action="store_true", help="only the side-by-side PNGs")
