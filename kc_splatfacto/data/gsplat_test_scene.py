@@ -3,7 +3,8 @@
 The Gaussians are built as gsplat's ``gsplat/_helper.py:load_test_data`` builds them, so a rasterizer test or
 benchmark here renders what gsplat's own tests render: points cropped to [-2, 2]^3 (111,785 of them), random unit
 quaternions, scales U[1e-4, 0.02], opacities U[0, 1], colours from the points. Random draws come from a torch
-generator with the given seed (gsplat uses the global RNG, so the draws differ from its, the distributions do not).
+generator with the given seed (gsplat uses torch's global RNG: the draws differ from gsplat's, their
+distributions do not).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ def load_gsplat_test_scene(path: str | Path, seed: int = 42) -> dict:
     if not path.is_file():
         raise FileNotFoundError(
             f"gsplat test scene not found: {path} (it is gsplat's assets/test_garden.npz; "
-            "point KC_SHARED_DATA at the folder holding gsplat-test-garden/)"
+            "the tests and benchmarks look for it in $KC_SHARED_DATA/gsplat-test-garden/)"
         )
     data = np.load(path)
     means = torch.from_numpy(data["means3d"]).float()
