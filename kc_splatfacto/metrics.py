@@ -21,6 +21,13 @@ from kc_splatfacto.lpips import lpips
 
 SSIM_WINDOW = 11
 """Splatfacto / 3DGS window"""
+SSIM_SIGMA = 1.5
+"""the Gaussian window's standard deviation (kornia's SSIM, as in Wang et al. 2004)"""
+SSIM_C1 = 0.01**2
+SSIM_C2 = 0.03**2
+"""SSIM's stabilising constants (k1 L)^2 and (k2 L)^2 for the dynamic range L = 1 (kornia's)"""
+SSIM_EPS = 1e-12
+"""added to the SSIM denominator (kornia's default eps)"""
 
 
 def _check_pair(pred: Tensor, gt: Tensor, min_size: int = 1) -> None:

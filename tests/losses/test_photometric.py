@@ -132,3 +132,97 @@ def test_a_mask_that_selects_nothing_or_has_the_wrong_shape_is_an_error(image_pa
         psnr(pred, gt, mask=torch.zeros(2, 1, 40, 33, dtype=torch.bool))
     with pytest.raises(ValueError, match="mask must be"):
         mean_ssim(pred, gt, mask=torch.ones(2, 3, 40, 33, dtype=torch.bool))
+
+
+# --- the fused CPU D-SSIM (losses/_ssim_kernels.py) against scipy and kornia --------------------------------------
+
+
+def _kornia_dssim(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    return 1.0 - mean_ssim(pred, gt)
+
+
+@pytest.mark.parametrize("shape", [(2, 3, 40, 33), (1, 1, 6, 6), (1, 3, 7, 11), (3, 2, 17, 6)])
+def test_fused_dssim_matches_scipy_reference_in_float64(shape):
+    rng = np.random.default_rng(sum(shape))
+    gt = rng.random(shape)
+    pred = np.clip(gt + 0.2 * rng.standard_normal(shape), 0, 1)
+    got = dssim(torch.tensor(pred), torch.tensor(gt))
+    assert got.grad_fn is None or "Fused" in type(got.grad_fn).__name__
+    # kornia adds eps = 1e-12 to the denominator, the reference does not: ~1e-11 apart on these small images
+    np.testing.assert_allclose(float(got), 1 - reference_ssim(pred, gt), rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("dtype, rtol", [(torch.float64, 1e-10), (torch.float32, 1e-4)])
+@pytest.mark.parametrize("shape", [(2, 3, 40, 33), (1, 1, 6, 9), (1, 3, 128, 64)])
+def test_fused_dssim_value_and_gradient_match_kornia(dtype, rtol, shape):
+    torch.manual_seed(sum(shape))
+    gt = torch.rand(shape, dtype=dtype)
+    pred = (gt + 0.2 * torch.randn(shape, dtype=dtype)).clamp(0, 1).requires_grad_(True)
+    fused = dssim(pred, gt)
+    assert "Fused" in type(fused.grad_fn).__name__  # the training loss takes the fused path on the CPU
+    (g_fused,) = torch.autograd.grad(fused, pred)
+    reference = _kornia_dssim(pred, gt)
+    (g_reference,) = torch.autograd.grad(reference, pred)
+    assert g_fused.dtype == dtype and g_fused.shape == pred.shape
+    np.testing.assert_allclose(float(fused), float(reference), rtol=0, atol=1e-6 if dtype == torch.float32 else 1e-13)
+    scale = float(g_reference.abs().max())
+    np.testing.assert_allclose(g_fused.numpy(), g_reference.numpy(), rtol=0, atol=rtol * scale)
+
+
+def test_fused_dssim_upstream_gradient_scales_the_result():
+    torch.manual_seed(1)
+    gt = torch.rand(1, 3, 20, 24, dtype=torch.float64)
+    pred = torch.rand(1, 3, 20, 24, dtype=torch.float64, requires_grad=True)
+    (g1,) = torch.autograd.grad(dssim(pred, gt), pred)
+    (g3,) = torch.autograd.grad(-3.0 * dssim(pred, gt), pred)
+    np.testing.assert_allclose(g3.numpy(), -3.0 * g1.numpy(), rtol=1e-12)
+
+
+def test_fused_dssim_does_not_depend_on_the_thread_count():
+    import numba
+
+    torch.manual_seed(2)
+    gt = torch.rand(2, 3, 64, 48)
+    pred = torch.rand(2, 3, 64, 48, requires_grad=True)
+    before = numba.get_num_threads()
+    results = []
+    try:
+        for threads in sorted({1, max(1, before)}):
+            numba.set_num_threads(threads)
+            value = dssim(pred, gt)
+            (grad,) = torch.autograd.grad(value, pred)
+            results.append((value.item(), grad.clone()))
+    finally:
+        numba.set_num_threads(before)
+    for value, grad in results[1:]:
+        assert value == results[0][0]
+        assert torch.equal(grad, results[0][1])
+
+
+def test_dssim_with_a_gt_that_needs_a_gradient_takes_kornia_and_gives_it_one():
+    torch.manual_seed(3)
+    gt = torch.rand(1, 3, 16, 16, dtype=torch.float64, requires_grad=True)
+    pred = torch.rand(1, 3, 16, 16, dtype=torch.float64, requires_grad=True)
+    value = dssim(pred, gt)
+    assert "Fused" not in type(value.grad_fn).__name__
+    g_pred, g_gt = torch.autograd.grad(value, (pred, gt))
+    assert float(g_gt.abs().max()) > 0
+    (g_fused,) = torch.autograd.grad(dssim(pred, gt.detach()), pred)
+    np.testing.assert_allclose(g_fused.numpy(), g_pred.numpy(), rtol=1e-10, atol=1e-15)
+
+
+def test_fused_dssim_of_identical_and_of_flat_images():
+    from kc_splatfacto.metrics import SSIM_C1, SSIM_C2, SSIM_EPS
+
+    flat = torch.full((1, 3, 12, 12), 0.25, dtype=torch.float64)
+    # kornia's documented value for two identical flat images of value mu: 1 - SSIM = eps / ((2 mu^2 + c1) c2 + eps)
+    expected = SSIM_EPS / ((2 * 0.25**2 + SSIM_C1) * SSIM_C2 + SSIM_EPS)
+    np.testing.assert_allclose(float(dssim(flat, flat)), expected, rtol=0, atol=1e-15)  # 1 - mean: absolute
+    img = torch.rand(1, 3, 12, 12, dtype=torch.float64, requires_grad=True)
+    value = dssim(img, img.detach())
+    (grad,) = torch.autograd.grad(value, img)
+    reference = _kornia_dssim(img, img.detach())
+    (g_reference,) = torch.autograd.grad(reference, img)
+    assert 0 <= float(value) < 1e-9  # eps / den, as kornia's
+    np.testing.assert_allclose(float(value), float(reference), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(grad.numpy(), g_reference.numpy(), rtol=0, atol=1e-15)  # at the minimum, ~0
