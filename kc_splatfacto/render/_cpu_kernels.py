@@ -545,19 +545,19 @@ def rasterize_fwd_blocks(
         count = np.zeros((BLOCKS_PER_TILE, LANES), dtype=np.float32)
         # 1 while the pixel composites; 0 once done (and for lanes outside the image)
         live = np.zeros((BLOCKS_PER_TILE, LANES), dtype=np.float32)
+        # live lanes per block and in the tile: a block with none is skipped whole (its lanes would change nothing)
+        block_live = np.zeros(BLOCKS_PER_TILE, dtype=np.int32)
         for r in range(y1 - y0):
             for c in range(x1 - x0):
-                live[(r // BLOCK) * BLOCK + c // BLOCK, (r % BLOCK) * BLOCK + c % BLOCK] = one
+                b = (r // BLOCK) * BLOCK + c // BLOCK
+                live[b, (r % BLOCK) * BLOCK + c % BLOCK] = one
+                block_live[b] += 1
+        tile_live = (y1 - y0) * (x1 - x0)
         px, py = _block_tables(x0, y0, pixel_offset)
         vis = np.empty(LANES, dtype=np.float32)
         for m in range(start, end):
-            if (m - start) % LANES == LANES - 1:
-                n_live = 0
-                for b in range(BLOCKS_PER_TILE):
-                    for lane in range(LANES):
-                        n_live += 1 if live[b, lane] > zero else 0
-                if n_live == 0:
-                    break
+            if tile_live == 0:
+                break
             gx = packed[m, PACK_X]
             gy = packed[m, PACK_Y]
             ca = packed[m, PACK_CONIC_A]
@@ -581,6 +581,9 @@ def rasterize_fwd_blocks(
                     continue
                 for bc in range((cf - x0) // BLOCK, (ce - 1 - x0) // BLOCK + 1):
                     b = br * BLOCK + bc
+                    if block_live[b] == 0:
+                        continue
+                    n_stop = 0
                     for lane in range(LANES):
                         dx = gx - px[bc, lane]
                         dy = gy - py[br, lane]
@@ -597,6 +600,9 @@ def rasterize_fwd_blocks(
                         last[b, lane] = mi if use else last[b, lane]
                         count[b, lane] += one if use else zero
                         live[b, lane] = zero if stop else live[b, lane]
+                        n_stop += 1 if stop else 0
+                    block_live[b] -= n_stop
+                    tile_live -= n_stop
                     for k in range(n_channels):
                         ck = packed[m, PACK_HEAD + k]
                         for lane in range(LANES):
