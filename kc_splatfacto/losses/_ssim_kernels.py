@@ -39,6 +39,20 @@ def _reflect(q, n):
     return q
 
 
+@njit(inline="always")
+def _plane_row(row, height):
+    """(plane, row within the plane) of flat row index ``row`` over [S, H] (the kernels' parallel unit)."""
+    plane = row // height
+    return plane, row - plane * height
+
+
+@njit(inline="always")
+def _add_scaled_row(out, s, i, k, src, q):
+    """``out[s, i, :] += k * src[s, q, :]``."""
+    for j in range(out.shape[2]):
+        out[s, i, j] += k * src[s, q, j]
+
+
 @njit(parallel=True, cache=True)
 def blur_rows(src, taps, out):
     """``out[s, i, :]`` = reflect-padded correlation of ``src[s, i, :]`` with ``taps`` along W. src, out [S, H, W]."""
@@ -46,8 +60,7 @@ def blur_rows(src, taps, out):
     n_taps = taps.shape[0]
     radius = n_taps // 2
     for row in prange(n_planes * height):
-        s = row // height
-        i = row - s * height
+        s, i = _plane_row(row, height)
         padded = np.empty(width + 2 * radius, dtype=src.dtype)
         for q in range(width + 2 * radius):
             padded[q] = src[s, i, _reflect(q - radius, width)]
@@ -66,15 +79,12 @@ def blur_cols(src, taps, out):
     n_taps = taps.shape[0]
     radius = n_taps // 2
     for row in prange(n_planes * height):
-        s = row // height
-        i = row - s * height
+        s, i = _plane_row(row, height)
         for j in range(width):
             out[s, i, j] = 0.0
         for t in range(n_taps):
             k = taps[t]
-            q = _reflect(i + t - radius, height)
-            for j in range(width):
-                out[s, i, j] += k * src[s, q, j]
+            _add_scaled_row(out, s, i, k, src, _reflect(i + t - radius, height))
 
 
 @njit(parallel=True, cache=True)
@@ -85,8 +95,7 @@ def blur_rows_adjoint(grad, taps, out):
     radius = n_taps // 2
     n_padded = width + 2 * radius
     for row in prange(n_planes * height):
-        s = row // height
-        i = row - s * height
+        s, i = _plane_row(row, height)
         # the gradient w.r.t. the padded row: padded[p] = sum_t taps[t] grad[p - t] (grad is 0 outside [0, W))
         zero_ext = np.zeros(width + 2 * (n_taps - 1), dtype=grad.dtype)
         for j in range(width):
@@ -116,8 +125,7 @@ def blur_cols_adjoint(grad, taps, out):
     n_taps = taps.shape[0]
     radius = n_taps // 2
     for row in prange(n_planes * height):
-        s = row // height
-        q = row - s * height
+        s, q = _plane_row(row, height)
         for j in range(width):
             out[s, q, j] = 0.0
         for t in range(n_taps):
@@ -125,18 +133,13 @@ def blur_cols_adjoint(grad, taps, out):
             # padded index i + t - radius equal to q, to -q (top mirror, q > 0) or to 2 (H - 1) - q (bottom, q < H - 1)
             i = q - t + radius
             if 0 <= i < height:
-                for j in range(width):
-                    out[s, q, j] += k * grad[s, i, j]
-            if q > 0:
-                i = -q - t + radius
-                if 0 <= i < height:
-                    for j in range(width):
-                        out[s, q, j] += k * grad[s, i, j]
-            if q < height - 1:
-                i = 2 * (height - 1) - q - t + radius
-                if 0 <= i < height:
-                    for j in range(width):
-                        out[s, q, j] += k * grad[s, i, j]
+                _add_scaled_row(out, s, q, k, grad, i)
+            i = -q - t + radius
+            if q > 0 and 0 <= i < height:
+                _add_scaled_row(out, s, q, k, grad, i)
+            i = 2 * (height - 1) - q - t + radius
+            if q < height - 1 and 0 <= i < height:
+                _add_scaled_row(out, s, q, k, grad, i)
 
 
 @njit(parallel=True, cache=True)
@@ -144,8 +147,7 @@ def stack_moments_input(x, y, out):
     """``out`` [5, P, H, W] = x, y, x^2, y^2, x y (the images whose blurs are the moments)."""
     n_planes, height, width = x.shape
     for row in prange(n_planes * height):
-        s = row // height
-        i = row - s * height
+        s, i = _plane_row(row, height)
         for j in range(width):
             a = x[s, i, j]
             b = y[s, i, j]
@@ -162,8 +164,7 @@ def ssim_partials(moments, c1, c2, eps, row_sums, partials):
     row, float64) and ``partials`` [3, P, H, W] (ds/dmu_x, ds/dE[x^2], ds/dE[xy])."""
     n_planes, height, width = moments.shape[1:]
     for row in prange(n_planes * height):
-        s = row // height
-        i = row - s * height
+        s, i = _plane_row(row, height)
         total = 0.0
         for j in range(width):
             mu_x = moments[MOM_X, s, i, j]
@@ -200,8 +201,7 @@ def ssim_input_grad(blurred_partials, x, y, scale, out):
     """``out`` [P, H, W] = scale * (a + 2 x b_xx + y b_xy) from the adjoint-blurred partials (a, b_xx, b_xy)."""
     n_planes, height, width = x.shape
     for row in prange(n_planes * height):
-        s = row // height
-        i = row - s * height
+        s, i = _plane_row(row, height)
         for j in range(width):
             out[s, i, j] = scale * (blurred_partials[PART_MU, s, i, j]
                                     + (x[s, i, j] + x[s, i, j]) * blurred_partials[PART_XX, s, i, j]
