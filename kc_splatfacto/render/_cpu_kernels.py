@@ -420,6 +420,27 @@ def reduce_isect_grads(isect_grads, flatten_ids, n_gaussians, gaussian_grads):
             gaussian_grads[g, k] += isect_grads[m, k]
 
 
+@njit(parallel=True, cache=True, fastmath=False)
+def split_gaussian_grads(gaussian_grads, v_means2d, v_conics, v_opacities, v_abs, v_colors):
+    """Round the float64 per-Gaussian sums of ``reduce_isect_grads`` to float32 into the per-input gradient arrays:
+    v_means2d [G, 2], v_conics [G, 3], v_opacities [G], v_abs [G, 2] (absgrad; an empty array skips it),
+    v_colors [G, D]. One pass instead of a float32 copy of the whole table and a copy per slice."""
+    n_channels = v_colors.shape[1]
+    want_abs = v_abs.shape[0] == gaussian_grads.shape[0]
+    for g in prange(gaussian_grads.shape[0]):
+        v_means2d[g, 0] = np.float32(gaussian_grads[g, GRAD_X])
+        v_means2d[g, 1] = np.float32(gaussian_grads[g, GRAD_Y])
+        v_conics[g, 0] = np.float32(gaussian_grads[g, GRAD_CONIC_A])
+        v_conics[g, 1] = np.float32(gaussian_grads[g, GRAD_CONIC_B])
+        v_conics[g, 2] = np.float32(gaussian_grads[g, GRAD_CONIC_C])
+        v_opacities[g] = np.float32(gaussian_grads[g, GRAD_OPACITY])
+        if want_abs:
+            v_abs[g, 0] = np.float32(gaussian_grads[g, GRAD_ABS_X])
+            v_abs[g, 1] = np.float32(gaussian_grads[g, GRAD_ABS_Y])
+        for k in range(n_channels):
+            v_colors[g, k] = np.float32(gaussian_grads[g, GRAD_HEAD + k])
+
+
 # ------------------------------------------------------------------------------------------------------------------
 # Lane utilities for the vectorized 16 px tile kernels below: 16 pixels are processed as 16 lanes without branches
 # (LLVM turns the lane loops into AVX2 code), and the Gaussian's exp is the branch-free ``exp_neg``. Decisions (skip,

@@ -138,13 +138,25 @@ class _RasterizeToPixelsCPU(torch.autograd.Function):
         K.reduce_isect_grads(isect_grads, ids, C * N, grads)
 
         dtype = ctx.means2d.dtype
-        grads_t = torch.from_numpy(grads).to(dtype).reshape(C, N, K.GRAD_HEAD + D)
-        v_means2d = grads_t[..., K.GRAD_X:K.GRAD_Y + 1].contiguous()
-        v_conics = grads_t[..., K.GRAD_CONIC_A:K.GRAD_CONIC_C + 1].contiguous()
-        v_opacities = grads_t[..., K.GRAD_OPACITY].contiguous()
-        v_colors = grads_t[..., K.GRAD_HEAD:].contiguous()
-        if ctx.absgrad:
-            ctx.means2d.absgrad = grads_t[..., K.GRAD_ABS_X:K.GRAD_ABS_Y + 1].contiguous()
+        if dtype == torch.float32:
+            v_means2d = torch.empty(C, N, 2)
+            v_conics = torch.empty(C, N, 3)
+            v_opacities = torch.empty(C, N)
+            v_colors = torch.empty(C, N, D)
+            v_abs = torch.empty(C, N, 2) if ctx.absgrad else torch.empty(0, 2)
+            K.split_gaussian_grads(grads, v_means2d.numpy().reshape(C * N, 2), v_conics.numpy().reshape(C * N, 3),
+                                   v_opacities.numpy().reshape(C * N), v_abs.numpy().reshape(-1, 2),
+                                   v_colors.numpy().reshape(C * N, D))
+            if ctx.absgrad:
+                ctx.means2d.absgrad = v_abs
+        else:
+            grads_t = torch.from_numpy(grads).to(dtype).reshape(C, N, K.GRAD_HEAD + D)
+            v_means2d = grads_t[..., K.GRAD_X:K.GRAD_Y + 1].contiguous()
+            v_conics = grads_t[..., K.GRAD_CONIC_A:K.GRAD_CONIC_C + 1].contiguous()
+            v_opacities = grads_t[..., K.GRAD_OPACITY].contiguous()
+            v_colors = grads_t[..., K.GRAD_HEAD:].contiguous()
+            if ctx.absgrad:
+                ctx.means2d.absgrad = grads_t[..., K.GRAD_ABS_X:K.GRAD_ABS_Y + 1].contiguous()
         v_backgrounds = None
         if ctx.has_backgrounds and ctx.needs_input_grad[4]:
             # d(out)/d(bg) = T_final per pixel
