@@ -349,14 +349,15 @@ class SplatfactoModel(torch.nn.Module):
             ``output_depth_during_training``), ``accumulation`` [H, W, 1], ``background`` [3].
             In training H, W are the size at the current training resolution.
         """
-        from kc_splatfacto.render import rasterization
+        from kc_splatfacto.render import SplitSH, rasterization
 
         if len(camera) != 1:
             raise ValueError(f"get_outputs renders one camera at a time, got {len(camera)}")
         camera = rescale_cameras(camera.to(self.device), self.get_downscale_factor())
         width, height = int(camera.widths[0]), int(camera.heights[0])
         if self.config.sh_degree > 0:
-            colors = torch.cat([self.features_dc[:, None, :], self.features_rest], dim=1)
+            # the two parameters as they are: the cpu backend reads them in place (no [N, 16, 3] copy per step)
+            colors = SplitSH(self.features_dc[:, None, :], self.features_rest)
             sh_degree = self.sh_degree_to_use()
         else:
             colors = torch.sigmoid(self.features_dc)

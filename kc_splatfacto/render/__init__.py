@@ -11,7 +11,7 @@ from .projection import (
 )
 from .rasterization import BACKENDS, RENDER_MODES, rasterization, resolve_backend
 from .rasterize_torch import rasterize_to_pixels_torch
-from .sh import num_sh_bases, sh_bases, sh_to_rgb, spherical_harmonics
+from .sh import SplitSH, num_sh_bases, sh_bases, sh_to_rgb, spherical_harmonics
 from .tiles import TileIntersections, isect_offset_encode, isect_tiles, tile_grid
 
 __all__ = [
@@ -19,6 +19,7 @@ __all__ = [
     "NonFiniteInputError",
     "RENDER_MODES",
     "Projection",
+    "SplitSH",
     "TileIntersections",
     "fully_fused_projection",
     "isect_offset_encode",

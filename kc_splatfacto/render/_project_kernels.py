@@ -58,51 +58,54 @@ def _sh_bases_all(x, y, z, sh_c):
 
 
 @njit(inline="always", cache=True)
-def _sh_dot(shs, cs, n, ch, n_bases, b):
-    """sum_k b[k] shs[cs, n, k, ch] over the first n_bases (1, 4, 9 or 16) coefficients."""
-    v = b[0] * shs[cs, n, 0, ch]
+def _sh_dot(sh_dc, sh_rest, cs, n, ch, n_bases, b):
+    """sum_k b[k] sh[cs, n, k, ch] over the first n_bases (1, 4, 9 or 16) coefficients, coefficient 0 read from
+    ``sh_dc`` and k >= 1 from ``sh_rest[..., k - 1, ch]`` (Splatfacto keeps them apart: no concatenated copy)."""
+    v = b[0] * sh_dc[cs, n, 0, ch]
     if n_bases > 1:
-        v += b[1] * shs[cs, n, 1, ch] + b[2] * shs[cs, n, 2, ch] + b[3] * shs[cs, n, 3, ch]
+        v += b[1] * sh_rest[cs, n, 0, ch] + b[2] * sh_rest[cs, n, 1, ch] + b[3] * sh_rest[cs, n, 2, ch]
     if n_bases > 4:
-        v += (b[4] * shs[cs, n, 4, ch] + b[5] * shs[cs, n, 5, ch] + b[6] * shs[cs, n, 6, ch]
-              + b[7] * shs[cs, n, 7, ch] + b[8] * shs[cs, n, 8, ch])
+        v += (b[4] * sh_rest[cs, n, 3, ch] + b[5] * sh_rest[cs, n, 4, ch] + b[6] * sh_rest[cs, n, 5, ch]
+              + b[7] * sh_rest[cs, n, 6, ch] + b[8] * sh_rest[cs, n, 7, ch])
     if n_bases > 9:
-        v += (b[9] * shs[cs, n, 9, ch] + b[10] * shs[cs, n, 10, ch] + b[11] * shs[cs, n, 11, ch]
-              + b[12] * shs[cs, n, 12, ch] + b[13] * shs[cs, n, 13, ch] + b[14] * shs[cs, n, 14, ch]
-              + b[15] * shs[cs, n, 15, ch])
+        v += (b[9] * sh_rest[cs, n, 8, ch] + b[10] * sh_rest[cs, n, 9, ch] + b[11] * sh_rest[cs, n, 10, ch]
+              + b[12] * sh_rest[cs, n, 11, ch] + b[13] * sh_rest[cs, n, 12, ch] + b[14] * sh_rest[cs, n, 13, ch]
+              + b[15] * sh_rest[cs, n, 14, ch])
     return v
 
 
 @njit(inline="always", cache=True)
-def _sh_scatter(v_shs, cs, n, ch, n_bases, b, v):
-    """v_shs[cs, n, k, ch] += b[k] v for the first n_bases coefficients."""
-    v_shs[cs, n, 0, ch] += b[0] * v
+def _sh_scatter(v_sh_dc, v_sh_rest, cs, n, ch, n_bases, b, v):
+    """v_sh[cs, n, k, ch] += b[k] v for the first n_bases coefficients (k = 0 in ``v_sh_dc``, k >= 1 in
+    ``v_sh_rest[..., k - 1, ch]``)."""
+    v_sh_dc[cs, n, 0, ch] += b[0] * v
     if n_bases > 1:
-        v_shs[cs, n, 1, ch] += b[1] * v
-        v_shs[cs, n, 2, ch] += b[2] * v
-        v_shs[cs, n, 3, ch] += b[3] * v
+        v_sh_rest[cs, n, 0, ch] += b[1] * v
+        v_sh_rest[cs, n, 1, ch] += b[2] * v
+        v_sh_rest[cs, n, 2, ch] += b[3] * v
     if n_bases > 4:
-        v_shs[cs, n, 4, ch] += b[4] * v
-        v_shs[cs, n, 5, ch] += b[5] * v
-        v_shs[cs, n, 6, ch] += b[6] * v
-        v_shs[cs, n, 7, ch] += b[7] * v
-        v_shs[cs, n, 8, ch] += b[8] * v
+        v_sh_rest[cs, n, 3, ch] += b[4] * v
+        v_sh_rest[cs, n, 4, ch] += b[5] * v
+        v_sh_rest[cs, n, 5, ch] += b[6] * v
+        v_sh_rest[cs, n, 6, ch] += b[7] * v
+        v_sh_rest[cs, n, 7, ch] += b[8] * v
     if n_bases > 9:
-        v_shs[cs, n, 9, ch] += b[9] * v
-        v_shs[cs, n, 10, ch] += b[10] * v
-        v_shs[cs, n, 11, ch] += b[11] * v
-        v_shs[cs, n, 12, ch] += b[12] * v
-        v_shs[cs, n, 13, ch] += b[13] * v
-        v_shs[cs, n, 14, ch] += b[14] * v
-        v_shs[cs, n, 15, ch] += b[15] * v
+        v_sh_rest[cs, n, 8, ch] += b[9] * v
+        v_sh_rest[cs, n, 9, ch] += b[10] * v
+        v_sh_rest[cs, n, 10, ch] += b[11] * v
+        v_sh_rest[cs, n, 11, ch] += b[12] * v
+        v_sh_rest[cs, n, 12, ch] += b[13] * v
+        v_sh_rest[cs, n, 13, ch] += b[14] * v
+        v_sh_rest[cs, n, 14, ch] += b[15] * v
 
 
 @njit(inline="always", cache=True)
-def _sh_dir_vjp(shs, cs, n, n_bases, x, y, z, v_r, v_g, v_b, sh_c):
-    """Gradient of sum_k,ch v_ch basis_k(x, y, z) shs[cs, n, k, ch] w.r.t. the (unnormalized) components x, y, z."""
+def _sh_dir_vjp(sh_rest, cs, n, n_bases, x, y, z, v_r, v_g, v_b, sh_c):
+    """Gradient of sum_k,ch v_ch basis_k(x, y, z) sh[cs, n, k, ch] w.r.t. the (unnormalized) components x, y, z
+    (coefficient 0 is constant in the direction: only ``sh_rest`` enters)."""
 
     def vb(k):
-        return v_r * shs[cs, n, k, 0] + v_g * shs[cs, n, k, 1] + v_b * shs[cs, n, k, 2]
+        return v_r * sh_rest[cs, n, k - 1, 0] + v_g * sh_rest[cs, n, k - 1, 1] + v_b * sh_rest[cs, n, k - 1, 2]
 
     v_x = 0.0
     v_y = 0.0
@@ -150,12 +153,12 @@ def _camera(viewmats, Ks, c, params):
 
 
 @njit(parallel=True, cache=True, fastmath=False)
-def project_sh_fwd(means, quats, scales, opacities, shs, viewmats, Ks, campos, params, sh_c, antialiased, sh_degree,
+def project_sh_fwd(means, quats, scales, opacities, sh_dc, sh_rest, viewmats, Ks, campos, params, sh_c, antialiased, sh_degree,
                    radii, means2d, depths, conics, compensations, opacities_c, colors, bad):
     """Forward of every (camera, Gaussian) pair.
 
-    Inputs: means [N,3], quats [N,4] wxyz, scales [N,3], opacities [N], shs [Cs,N,K,3] (Cs = 1 or C; ignored when
-    ``sh_degree < 0``), viewmats [C,4,4], Ks [C,3,3], campos [C,3] camera centres, params [N_PARAMS], sh_c
+    Inputs: means [N,3], quats [N,4] wxyz, scales [N,3], opacities [N], SH coefficients as sh_dc [Cs,N,1,3] and
+    sh_rest [Cs,N,K-1,3] (Cs = 1 or C; ignored when ``sh_degree < 0``), viewmats [C,4,4], Ks [C,3,3], campos [C,3] camera centres, params [N_PARAMS], sh_c
     [N_SH_CONSTS]. Outputs (written for every pair; culled pairs get radii 0 and zeros, colour ``max(offset, 0)``,
     opacity ``opacity`` in classic mode and 0 in antialiased mode, as the reference): radii [C,N,2] int32,
     means2d [C,N,2], depths [C,N], conics [C,N,3], compensations [C,N], opacities_c [C,N], colors [C,N,3] (when
@@ -164,7 +167,7 @@ def project_sh_fwd(means, quats, scales, opacities, shs, viewmats, Ks, campos, p
     """
     n_cams = viewmats.shape[0]
     n_gauss = means.shape[0]
-    n_sh_cams = shs.shape[0]
+    n_sh_cams = sh_dc.shape[0]
     eps2d = params[P_EPS2D]
     near = params[P_NEAR]
     far = params[P_FAR]
@@ -297,9 +300,9 @@ def project_sh_fwd(means, quats, scales, opacities, shs, viewmats, Ks, campos, p
                 dy *= inv_d
                 dz *= inv_d
                 bases = _sh_bases_all(dx, dy, dz, sh_c)
-                r = _sh_dot(shs, cs, n, 0, n_bases, bases)
-                g = _sh_dot(shs, cs, n, 1, n_bases, bases)
-                bl = _sh_dot(shs, cs, n, 2, n_bases, bases)
+                r = _sh_dot(sh_dc, sh_rest, cs, n, 0, n_bases, bases)
+                g = _sh_dot(sh_dc, sh_rest, cs, n, 1, n_bases, bases)
+                bl = _sh_dot(sh_dc, sh_rest, cs, n, 2, n_bases, bases)
                 # a NaN/inf coefficient of the active degrees makes its channel's sum non-finite (no cancellation
                 # can make it finite): the check costs one test per kept pair instead of a pass over every coefficient
                 if not (math.isfinite(r) and math.isfinite(g) and math.isfinite(bl)):
@@ -310,20 +313,20 @@ def project_sh_fwd(means, quats, scales, opacities, shs, viewmats, Ks, campos, p
 
 
 @njit(parallel=True, cache=True, fastmath=False)
-def project_sh_bwd(means, quats, scales, opacities, shs, viewmats, Ks, campos, params, sh_c, antialiased, sh_degree,
+def project_sh_bwd(means, quats, scales, opacities, sh_dc, sh_rest, viewmats, Ks, campos, params, sh_c, antialiased, sh_degree,
                    radii, v_means2d, v_depths, v_conics, v_opacities_c, v_colors, want_camera_grads,
-                   v_means, v_quats, v_scales, v_opacities, v_shs, v_viewmats_parts, v_campos_parts):
+                   v_means, v_quats, v_scales, v_opacities, v_sh_dc, v_sh_rest, v_viewmats_parts, v_campos_parts):
     """Backward of :func:`project_sh_fwd` for the pairs it kept (radii > 0); culled pairs get no gradient.
 
     Upstream gradients: v_means2d [C,N,2], v_depths [C,N], v_conics [C,N,3], v_opacities_c [C,N], v_colors [C,N,3].
     Outputs (any float dtype, every entry written here): v_means [N,3], v_quats [N,4], v_scales [N,3],
-    v_opacities [N], v_shs [Cs,N,K,3]; with ``want_camera_grads`` the per-pair contributions v_viewmats_parts
+    v_opacities [N], v_sh_dc [Cs,N,1,3], v_sh_rest [Cs,N,K-1,3]; with ``want_camera_grads`` the per-pair contributions v_viewmats_parts
     [C,N,12] (W row-major, then t) and v_campos_parts [C,N,3] (zero-initialised by the caller, culled pairs are
     skipped), summed over N by the caller.
     """
     n_cams = viewmats.shape[0]
     n_gauss = means.shape[0]
-    n_sh_cams = shs.shape[0]
+    n_sh_cams = sh_dc.shape[0]
     eps2d = params[P_EPS2D]
     offset = params[P_COLOR_OFFSET]
     n_bases = (sh_degree + 1) * (sh_degree + 1)
@@ -339,10 +342,13 @@ def project_sh_bwd(means, quats, scales, opacities, shs, viewmats, Ks, campos, p
         sy = np.float64(scales[n, 1])
         sz = np.float64(scales[n, 2])
         opacity = np.float64(opacities[n])
-        for cs in range(n_sh_cams):  # v_shs comes uninitialised: each Gaussian's rows are zeroed by its thread
-            for k in range(shs.shape[2]):
+        for cs in range(n_sh_cams):  # v_sh_* come uninitialised: each Gaussian's rows are zeroed by its thread
+            for k in range(sh_dc.shape[2]):
                 for ch in range(3):
-                    v_shs[cs, n, k, ch] = 0.0
+                    v_sh_dc[cs, n, k, ch] = 0.0
+            for k in range(sh_rest.shape[2]):
+                for ch in range(3):
+                    v_sh_rest[cs, n, k, ch] = 0.0
         q_norm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
         inv_norm = 1.0 / max(q_norm, NORM_EPS)
         nw, nx, ny, nz = qw * inv_norm, qx * inv_norm, qy * inv_norm, qz * inv_norm
@@ -511,17 +517,17 @@ def project_sh_bwd(means, quats, scales, opacities, shs, viewmats, Ks, campos, p
                 ey = dy * inv_d
                 ez = dz * inv_d
                 bases = _sh_bases_all(ex, ey, ez, sh_c)
-                sum_r = _sh_dot(shs, cs, n, 0, n_bases, bases)
-                sum_g = _sh_dot(shs, cs, n, 1, n_bases, bases)
-                sum_b = _sh_dot(shs, cs, n, 2, n_bases, bases)
+                sum_r = _sh_dot(sh_dc, sh_rest, cs, n, 0, n_bases, bases)
+                sum_g = _sh_dot(sh_dc, sh_rest, cs, n, 1, n_bases, bases)
+                sum_b = _sh_dot(sh_dc, sh_rest, cs, n, 2, n_bases, bases)
                 # clamp_min(colour + offset, 0) passes the gradient where the input is >= 0
                 v_r = v_colors[c, n, 0] if sum_r + offset >= 0.0 else 0.0
                 v_g = v_colors[c, n, 1] if sum_g + offset >= 0.0 else 0.0
                 v_bl = v_colors[c, n, 2] if sum_b + offset >= 0.0 else 0.0
-                _sh_scatter(v_shs, cs, n, 0, n_bases, bases, v_r)
-                _sh_scatter(v_shs, cs, n, 1, n_bases, bases, v_g)
-                _sh_scatter(v_shs, cs, n, 2, n_bases, bases, v_bl)
-                v_ex, v_ey, v_ez = _sh_dir_vjp(shs, cs, n, n_bases, ex, ey, ez, v_r, v_g, v_bl, sh_c)
+                _sh_scatter(v_sh_dc, v_sh_rest, cs, n, 0, n_bases, bases, v_r)
+                _sh_scatter(v_sh_dc, v_sh_rest, cs, n, 1, n_bases, bases, v_g)
+                _sh_scatter(v_sh_dc, v_sh_rest, cs, n, 2, n_bases, bases, v_bl)
+                v_ex, v_ey, v_ez = _sh_dir_vjp(sh_rest, cs, n, n_bases, ex, ey, ez, v_r, v_g, v_bl, sh_c)
                 # normalization dir / max(|dir|, eps)
                 if d_norm > NORM_EPS:
                     dot = ex * v_ex + ey * v_ey + ez * v_ez

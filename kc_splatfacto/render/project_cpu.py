@@ -12,7 +12,7 @@ NaN/inf in means, quats, scales, opacities or SH coefficients are found by the f
 
 from __future__ import annotations
 
-from typing import NamedTuple, Optional
+from typing import Callable, NamedTuple, Optional, Union
 
 import numpy as np
 import torch
@@ -24,6 +24,7 @@ from .constants import (
 )
 from .errors import NonFiniteInputError, non_finite_message
 from .projection import RADIUS_MAX
+from .sh import SplitSH
 
 __all__ = ["ProjectedSplats", "project_and_shade_cpu"]
 
@@ -70,25 +71,28 @@ _BAD_FIELDS = (
 )
 
 
-def _raise_non_finite(bad: np.ndarray, tensors: dict[str, Tensor]) -> None:
+def _raise_non_finite(bad: np.ndarray, tensors: dict[str, Callable[[], Tensor]]) -> None:
+    """Raise for the fields flagged in ``bad``; ``tensors`` maps each field to a function giving its values (only
+    called on this error path)."""
     flags = int(np.bitwise_or.reduce(bad)) if bad.size else 0
     names = tuple(name for bit, name in _BAD_FIELDS if flags & bit)
     if names:
-        raise NonFiniteInputError(non_finite_message(names[0], tensors[names[0]]), names)
+        raise NonFiniteInputError(non_finite_message(names[0], tensors[names[0]]()), names)
 
 
 class _ProjectAndShade(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, shs, viewmats, campos, Ks, settings):
+    def forward(ctx, means, quats, scales, opacities, sh_dc, sh_rest, viewmats, campos, Ks, settings):
         width, height, eps2d, near_plane, far_plane, radius_clip, antialiased, sh_degree = settings
         n_cams, n_gauss = viewmats.shape[0], means.shape[0]
         dtype = means.dtype
         np_dtype = np.float64 if dtype == torch.float64 else np.float32
         arrays = [_np(means), _np(quats), _np(scales), _np(opacities)]
         if sh_degree >= 0:
-            sh_np = _np(shs if shs.dim() == 4 else shs[None])
+            sh_dc_np = _np(sh_dc if sh_dc.dim() == 4 else sh_dc[None])
+            sh_rest_np = _np(sh_rest if sh_rest.dim() == 4 else sh_rest[None])
         else:
-            sh_np = np.zeros((1, 0, 0, 3), np_dtype)
+            sh_dc_np = sh_rest_np = np.zeros((1, 0, 0, 3), np_dtype)
         cams = [np.ascontiguousarray(t.detach().to(torch.float64).numpy()) for t in (viewmats, Ks, campos)]
         for name, arr in zip(("viewmats", "Ks"), cams[:2]):
             if not np.isfinite(arr).all():
@@ -102,13 +106,15 @@ class _ProjectAndShade(torch.autograd.Function):
         opacities_c = np.empty((n_cams, n_gauss), np_dtype)
         colors = np.empty((n_cams, n_gauss if sh_degree >= 0 else 0, 3), np_dtype)
         bad = np.empty(n_gauss, np.uint8)
-        PK.project_sh_fwd(*arrays, sh_np, *cams, params, _SH_CONSTS, antialiased, sh_degree,
+        PK.project_sh_fwd(*arrays, sh_dc_np, sh_rest_np, *cams, params, _SH_CONSTS, antialiased, sh_degree,
                           radii, means2d, depths, conics, comps, opacities_c, colors, bad)
-        _raise_non_finite(bad, {"means": means, "quats": quats, "scales": scales, "opacities": opacities,
-                                "colors": shs})
+        _raise_non_finite(bad, {
+            "means": lambda: means, "quats": lambda: quats, "scales": lambda: scales, "opacities": lambda: opacities,
+            "colors": lambda: torch.cat([sh_dc.detach().reshape(-1), sh_rest.detach().reshape(-1)]),
+        })
         ctx.settings = settings
-        ctx.arrays = (arrays, sh_np, cams, params, radii)
-        ctx.sh_shape = tuple(shs.shape) if sh_degree >= 0 else None
+        ctx.arrays = (arrays, sh_dc_np, sh_rest_np, cams, params, radii)
+        ctx.sh_shapes = (tuple(sh_dc.shape), tuple(sh_rest.shape)) if sh_degree >= 0 else None
         radii_t = torch.from_numpy(radii)
         ctx.mark_non_differentiable(radii_t)
         colors_t = torch.from_numpy(colors)
@@ -118,7 +124,7 @@ class _ProjectAndShade(torch.autograd.Function):
     @staticmethod
     def backward(ctx, _v_radii, v_means2d, v_depths, v_conics, v_opacities_c, v_colors):
         width, height, eps2d, near_plane, far_plane, radius_clip, antialiased, sh_degree = ctx.settings
-        arrays, sh_np, cams, params, radii = ctx.arrays
+        arrays, sh_dc_np, sh_rest_np, cams, params, radii = ctx.arrays
         n_cams, n_gauss = radii.shape[:2]
         np_dtype = arrays[0].dtype
 
@@ -131,22 +137,27 @@ class _ProjectAndShade(torch.autograd.Function):
         v_con = upstream(v_conics, (n_cams, n_gauss, 3))
         v_opc = upstream(v_opacities_c, (n_cams, n_gauss))
         v_col = upstream(v_colors, (n_cams, n_gauss, 3) if sh_degree >= 0 else (n_cams, 0, 3))
-        want_camera = bool(ctx.needs_input_grad[5] or ctx.needs_input_grad[6])
+        want_camera = bool(ctx.needs_input_grad[6] or ctx.needs_input_grad[7])
         v_means = np.empty((n_gauss, 3), np_dtype)
         v_quats = np.empty((n_gauss, 4), np_dtype)
         v_scales = np.empty((n_gauss, 3), np_dtype)
         v_opac = np.empty(n_gauss, np_dtype)
-        v_shs = np.empty(sh_np.shape, np_dtype)
+        v_sh_dc = np.empty(sh_dc_np.shape, np_dtype)
+        v_sh_rest = np.empty(sh_rest_np.shape, np_dtype)
         parts_shape = (n_cams, n_gauss) if want_camera else (0, 0)
         v_view_parts = np.zeros(parts_shape + (12,), np.float64)
         v_campos_parts = np.zeros(parts_shape + (3,), np.float64)
-        PK.project_sh_bwd(*arrays, sh_np, *cams, params, _SH_CONSTS, antialiased, sh_degree, radii,
+        PK.project_sh_bwd(*arrays, sh_dc_np, sh_rest_np, *cams, params, _SH_CONSTS, antialiased, sh_degree, radii,
                           v_m2d, v_dep, v_con, v_opc, v_col, want_camera,
-                          v_means, v_quats, v_scales, v_opac, v_shs, v_view_parts, v_campos_parts)
+                          v_means, v_quats, v_scales, v_opac, v_sh_dc, v_sh_rest, v_view_parts, v_campos_parts)
         dtype = torch.float64 if np_dtype == np.float64 else torch.float32
-        v_shs_t = None
-        if sh_degree >= 0 and ctx.needs_input_grad[4]:
-            v_shs_t = torch.from_numpy(v_shs).reshape(ctx.sh_shape)
+        v_sh_dc_t = v_sh_rest_t = None
+        if sh_degree >= 0:
+            dc_shape, rest_shape = ctx.sh_shapes
+            if ctx.needs_input_grad[4]:
+                v_sh_dc_t = torch.from_numpy(v_sh_dc).reshape(dc_shape)
+            if ctx.needs_input_grad[5]:
+                v_sh_rest_t = torch.from_numpy(v_sh_rest).reshape(rest_shape)
         v_viewmats = v_campos = None
         if want_camera:
             parts = v_view_parts.sum(axis=1)  # [C, 12], a fixed-order float64 sum
@@ -156,7 +167,7 @@ class _ProjectAndShade(torch.autograd.Function):
             v_viewmats = v_viewmats.to(dtype)
             v_campos = torch.from_numpy(v_campos_parts.sum(axis=1)).to(dtype)
         return (torch.from_numpy(v_means), torch.from_numpy(v_quats), torch.from_numpy(v_scales),
-                torch.from_numpy(v_opac), v_shs_t, v_viewmats, v_campos, None, None)
+                torch.from_numpy(v_opac), v_sh_dc_t, v_sh_rest_t, v_viewmats, v_campos, None, None)
 
 
 def project_and_shade_cpu(
@@ -164,7 +175,7 @@ def project_and_shade_cpu(
     quats: Tensor,
     scales: Tensor,
     opacities: Tensor,
-    shs: Optional[Tensor],
+    shs: Union[Tensor, SplitSH, None],
     viewmats: Tensor,
     Ks: Tensor,
     width: int,
@@ -182,7 +193,8 @@ def project_and_shade_cpu(
     Args:
         means [N, 3], quats [N, 4] wxyz (any norm), scales [N, 3] linear, opacities [N]: float32 or float64 CPU
             tensors (outputs and gradients in that dtype; the arithmetic is float64).
-        shs: SH coefficients [N, K, 3] or [C, N, K, 3] when ``sh_degree`` is not None (else ignored).
+        shs: SH coefficients [N, K, 3] or [C, N, K, 3], or a :class:`SplitSH` of them (read in place, no
+            concatenated copy), when ``sh_degree`` is not None (else ignored).
         viewmats [C, 4, 4] world-to-camera, Ks [C, 3, 3]; width, height in pixels.
 
     Returns:
@@ -194,12 +206,17 @@ def project_and_shade_cpu(
     degree = -1 if sh_degree is None else int(sh_degree)
     dtype = means.dtype
     if shs is None or degree < 0:
-        shs = means.new_zeros((0, 0, 3))
+        sh_dc = sh_rest = means.new_zeros((0, 0, 3))
+    elif isinstance(shs, SplitSH):
+        shs.check()
+        sh_dc, sh_rest = shs.dc.to(dtype), shs.rest.to(dtype)
+    else:
+        sh_dc, sh_rest = shs[..., :1, :].to(dtype), shs[..., 1:, :].to(dtype)
     # camera centres from the inverse, differentiated by autograd as the reference's torch.linalg.inv
     campos = torch.linalg.inv(viewmats)[:, :3, 3] if degree >= 0 else viewmats.new_zeros(viewmats.shape[0], 3)
     settings = (int(width), int(height), float(eps2d), float(near_plane), float(far_plane), float(radius_clip),
                 bool(antialiased), degree)
     radii, means2d, depths, conics, opacities_c, colors = _ProjectAndShade.apply(
-        means, quats.to(dtype), scales.to(dtype), opacities.to(dtype), shs.to(dtype), viewmats, campos, Ks, settings
+        means, quats.to(dtype), scales.to(dtype), opacities.to(dtype), sh_dc, sh_rest, viewmats, campos, Ks, settings
     )
     return ProjectedSplats(radii, means2d, depths, conics, opacities_c, colors if degree >= 0 else None)

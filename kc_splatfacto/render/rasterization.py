@@ -18,7 +18,7 @@ from .constants import EPS2D, EXPECTED_DEPTH_ALPHA_MIN, FAR_PLANE, NEAR_PLANE, T
 from .errors import NonFiniteInputError, non_finite_message
 from .projection import fully_fused_projection
 from .rasterize_torch import rasterize_to_pixels_torch
-from .sh import sh_to_rgb
+from .sh import SplitSH, sh_to_rgb
 from .tiles import bin_tiles_cpu, isect_offset_encode, isect_tiles, tile_grid
 
 RenderMode = Literal["RGB", "D", "ED", "RGB+D", "RGB+ED"]
@@ -140,6 +140,10 @@ def _check_inputs(
         raise ValueError(f"Ks must be [C, 3, 3] = [{c}, 3, 3], got {tuple(Ks.shape)}")
     if int(width) != width or int(height) != height or width < 1 or height < 1:
         raise ValueError(f"width and height must be positive integers, got width={width}, height={height}")
+    if isinstance(colors, SplitSH):
+        if sh_degree is None:
+            raise ValueError("colors=SplitSH(...) holds SH coefficients: pass sh_degree")
+        colors.check()
     if sh_degree is None:
         if not (colors.dim() == 2 and colors.shape[0] == n) and not (colors.dim() == 3 and colors.shape[:2] == (c, n)):
             raise ValueError(
@@ -149,11 +153,12 @@ def _check_inputs(
     else:
         if not 0 <= sh_degree <= 3:
             raise ValueError(f"sh_degree must be in 0..3, got {sh_degree}")
-        ok = (colors.dim() == 3 and colors.shape[0] == n) or (colors.dim() == 4 and colors.shape[:2] == (c, n))
-        if not ok or colors.shape[-1] != 3 or colors.shape[-2] < (sh_degree + 1) ** 2:
+        shape = colors.shape
+        ok = (len(shape) == 3 and shape[0] == n) or (len(shape) == 4 and shape[:2] == (c, n))
+        if not ok or shape[-1] != 3 or shape[-2] < (sh_degree + 1) ** 2:
             raise ValueError(
                 f"SH colors must be [N, K, 3] or [C, N, K, 3] with K >= (sh_degree + 1)^2 = {(sh_degree + 1) ** 2}, "
-                f"got {tuple(colors.shape)}"
+                f"got {tuple(shape)}"
             )
     if render_mode not in RENDER_MODES:
         raise ValueError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
@@ -163,6 +168,8 @@ def _check_inputs(
         raise ValueError(f"backgrounds must be [C, D] with C={c}, got {tuple(backgrounds.shape)}")
     if not check_finite:
         return
+    if isinstance(colors, SplitSH):
+        colors = colors.cat()
     for name, tensor in (
         ("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
         ("colors", colors), ("viewmats", viewmats), ("Ks", Ks),
@@ -199,7 +206,9 @@ def rasterization(
     Args:
         means: [N, 3]; quats: [N, 4] wxyz, any norm; scales: [N, 3] linear; opacities: [N] in [0, 1].
         colors: [N, D] or [C, N, D] post-activation, or SH coefficients [N, K, 3] / [C, N, K, 3] with ``sh_degree``
-            (colour = max(SH(means - camera centre) + 0.5, 0)).
+            (colour = max(SH(means - camera centre) + 0.5, 0)), or those coefficients as a :class:`sh.SplitSH`
+            (degree 0 and the rest in two tensors, as Splatfacto holds them: the cpu backend reads them in place;
+            the others concatenate them).
         viewmats: [C, 4, 4] world-to-camera (OpenCV); Ks: [C, 3, 3]; width, height: pixels.
         render_mode: "RGB"; "D" accumulated depth; "ED" expected depth (accumulated depth / max(alpha, 1e-10));
             "RGB+D", "RGB+ED": depth as an extra last channel (background 0 for it).
@@ -213,6 +222,10 @@ def rasterization(
         ``height``, ``tile_size``, ``n_cameras``).
     """
     resolved = resolve_backend(backend, means.device)
+    fused = resolved == "cpu" and means.dtype in (torch.float32, torch.float64)
+    if isinstance(colors, SplitSH) and not fused:
+        colors.check()
+        colors = colors.cat()
     if resolved == "gsplat":
         import gsplat
 
@@ -227,7 +240,6 @@ def rasterization(
         meta["backend"] = resolved
         return render_colors, render_alphas, meta
 
-    fused = resolved == "cpu" and means.dtype in (torch.float32, torch.float64)
     _check_inputs(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds, render_mode,
         rasterize_mode, check_finite=not fused,

@@ -2,13 +2,42 @@
 
 from __future__ import annotations
 
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from .constants import SH_C0, SH_C1, SH_C2, SH_C3, SH_COLOR_OFFSET, SH_MAX_DEGREE
+
+
+class SplitSH(NamedTuple):
+    """SH coefficients held in two tensors, as Splatfacto holds them: ``dc`` [..., N, 1, 3] (degree 0) and ``rest``
+    [..., N, K - 1, 3]. ``rasterization(colors=SplitSH(...), sh_degree=d)`` means ``colors=split.cat()``; the compiled
+    CPU path reads and differentiates the two tensors in place, so a step makes no concatenated [N, K, 3] copy and
+    no sliced copies of its gradient."""
+
+    dc: Tensor
+    rest: Tensor
+
+    @property
+    def shape(self) -> torch.Size:
+        """The shape of :meth:`cat`'s result."""
+        return self.rest.shape[:-2] + (1 + self.rest.shape[-2], self.rest.shape[-1])
+
+    def cat(self) -> Tensor:
+        """[..., N, K, 3]: the coefficients in one tensor (gsplat's and the torch reference's input)."""
+        return torch.cat([self.dc, self.rest], dim=-2)
+
+    def check(self) -> None:
+        """Raise ValueError unless ``dc`` is [..., N, 1, 3] and ``rest`` [..., N, K - 1, 3] with the same leading shape."""
+        dc, rest = self.dc, self.rest
+        if dc.dim() < 3 or dc.shape[-2] != 1 or rest.dim() != dc.dim() or rest.shape[:-2] != dc.shape[:-2] \
+                or rest.shape[-1] != dc.shape[-1]:
+            raise ValueError(
+                f"SplitSH needs dc [..., N, 1, 3] and rest [..., N, K - 1, 3] with the same leading shape, got "
+                f"dc {tuple(dc.shape)} and rest {tuple(rest.shape)}"
+            )
 
 
 def num_sh_bases(degree: int) -> int:

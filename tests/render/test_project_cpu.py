@@ -166,3 +166,55 @@ def test_non_finite_sh_coefficient_of_an_inactive_degree_is_not_read():
     inputs[4][:, 4:] = math.nan  # degrees 2 and 3, unused at degree 1
     out = fast(*inputs, 1, False)
     assert all(torch.isfinite(t).all() for t in out)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("sh_degree", [0, 1, 3])
+def test_split_sh_coefficients_give_the_same_outputs_and_gradients(dtype, sh_degree):
+    """``SplitSH(dc, rest)`` (Splatfacto's two parameters, read in place) against the same coefficients in one tensor:
+    outputs and every gradient bit for bit (same kernel arithmetic), and the SH gradient against the torch reference."""
+    from kc_splatfacto.render.sh import SplitSH
+
+    results = []
+    for split in (False, True):
+        leaves = [t.clone().requires_grad_(True) for t in scene(dtype=dtype)[:4]]
+        shs = scene(dtype=dtype)[4]
+        dc = shs[:, :1].clone().requires_grad_(True)
+        rest = shs[:, 1:].clone().requires_grad_(True)
+        viewmats, Ks = scene(dtype=dtype)[5:]
+        colors = SplitSH(dc, rest) if split else torch.cat([dc, rest], dim=1)
+        outputs = fast(*leaves, colors, viewmats, Ks, sh_degree, False)
+        weights = _loss_weights(outputs, seed=5)
+        sum((o * w.to(dtype)).sum() for o, w in zip(outputs[1:], weights)).backward()
+        results.append([o.detach() for o in outputs] + [t.grad for t in leaves] + [dc.grad, rest.grad])
+    for a, b in zip(*results):
+        assert torch.equal(a, b)
+    # the reference's SH gradient for the same loss (float64 only: it is the tight oracle)
+    if dtype == torch.float64:
+        shs = scene(dtype=dtype)[4].clone().requires_grad_(True)
+        outputs = reference(*scene(dtype=dtype)[:4], shs, *scene(dtype=dtype)[5:], sh_degree, False)
+        weights = _loss_weights(outputs, seed=5)
+        sum((o * w).sum() for o, w in zip(outputs[1:], weights)).backward()
+        dc_grad, rest_grad = results[1][-2:]
+        torch.testing.assert_close(torch.cat([dc_grad, rest_grad], dim=1), shs.grad, rtol=1e-9, atol=1e-12)
+        assert shs.grad[:, : (sh_degree + 1) ** 2].abs().max() > 0
+
+
+def test_split_sh_with_a_non_finite_coefficient_names_colors():
+    from kc_splatfacto.render import NonFiniteInputError
+    from kc_splatfacto.render.sh import SplitSH
+
+    inputs = scene(n=50, dtype=torch.float32)
+    kept = int(torch.nonzero((fast(*inputs, 3, False)[0] > 0).all(-1).any(0))[-1])
+    dc, rest = inputs[4][:, :1].clone(), inputs[4][:, 1:].clone()
+    dc[kept, 0, 1] = math.nan
+    with pytest.raises(NonFiniteInputError, match="colors holds 1 NaN/inf"):
+        fast(*inputs[:4], SplitSH(dc, rest), *inputs[5:], 3, False)
+
+
+def test_split_sh_shapes_are_checked():
+    from kc_splatfacto.render.sh import SplitSH
+
+    inputs = scene(n=20, dtype=torch.float32)
+    with pytest.raises(ValueError, match="SplitSH needs dc"):
+        fast(*inputs[:4], SplitSH(inputs[4][:, :2], inputs[4][:, 2:]), *inputs[5:], 3, False)
