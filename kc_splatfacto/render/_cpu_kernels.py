@@ -13,7 +13,7 @@ Layout shared by the kernels (all arrays C-contiguous numpy):
   ``last_ids [C, H, W] int32`` (intersection index of the last contributor, -1 when none).
 - ``isect_grads [M, GRAD_HEAD + D] float32``: per-intersection gradients written by the tile that owns the
   intersection (each intersection belongs to exactly one tile, so no write races), reduced to Gaussians by
-  ``reduce_isect_grads`` in a fixed serial order (deterministic).
+  ``reduce_isect_grads`` in a fixed order per Gaussian (deterministic).
 
 Kernel families: the 4x4-block kernels (``*_blocks``, 16 px tiles: ``constants.BLOCK_TILE_SIZE``) and the scalar
 kernels (any other tile size). Both evaluate a Gaussian at a pixel through ``_gaussian_sigma`` and ``_alpha_at``
@@ -410,35 +410,40 @@ def rasterize_bwd(
                 isect_grads[m, GRAD_HEAD + k] = v_rgb[k]
 
 
-@njit(cache=True, fastmath=False)
-def reduce_isect_grads(isect_grads, flatten_ids, n_gaussians, gaussian_grads):
-    """gaussian_grads[g] = sum of isect_grads[m] over m with flatten_ids[m] == g, float64, fixed order."""
-    n_cols = isect_grads.shape[1]
-    for m in range(flatten_ids.shape[0]):
-        g = flatten_ids[m]
-        for k in range(n_cols):
-            gaussian_grads[g, k] += isect_grads[m, k]
-
-
 @njit(parallel=True, cache=True, fastmath=False)
-def split_gaussian_grads(gaussian_grads, v_means2d, v_conics, v_opacities, v_abs, v_colors):
-    """Round the float64 per-Gaussian sums of ``reduce_isect_grads`` to float32 into the per-input gradient arrays:
-    v_means2d [G, 2], v_conics [G, 3], v_opacities [G], v_abs [G, 2] (absgrad; an empty array skips it),
-    v_colors [G, D]. One pass instead of a float32 copy of the whole table and a copy per slice."""
+def reduce_isect_grads(isect_grads, flatten_ids, n_parts, sums, v_means2d, v_conics, v_opacities, v_abs, v_colors):
+    """Per-Gaussian gradients: ``sums[g] = sum of isect_grads[m] over m with flatten_ids[m] == g`` in float64, in
+    the serial order of m, then rounded into the per-input arrays v_means2d [G, 2], v_conics [G, 3],
+    v_opacities [G], v_abs [G, 2] (absgrad; an empty array skips it), v_colors [G, D] (float32 or float64).
+
+    ``sums`` [G, GRAD_HEAD + D] float64 must be zero. The Gaussians are cut into ``n_parts`` ranges, one per parallel
+    task; each task scans every intersection and adds only its own Gaussians', so every Gaussian's sum has the same
+    order whatever the thread count (deterministic), and each range is written out by the task that summed it.
+    """
+    n_gaussians = sums.shape[0]
+    n_cols = isect_grads.shape[1]
     n_channels = v_colors.shape[1]
-    want_abs = v_abs.shape[0] == gaussian_grads.shape[0]
-    for g in prange(gaussian_grads.shape[0]):
-        v_means2d[g, 0] = np.float32(gaussian_grads[g, GRAD_X])
-        v_means2d[g, 1] = np.float32(gaussian_grads[g, GRAD_Y])
-        v_conics[g, 0] = np.float32(gaussian_grads[g, GRAD_CONIC_A])
-        v_conics[g, 1] = np.float32(gaussian_grads[g, GRAD_CONIC_B])
-        v_conics[g, 2] = np.float32(gaussian_grads[g, GRAD_CONIC_C])
-        v_opacities[g] = np.float32(gaussian_grads[g, GRAD_OPACITY])
-        if want_abs:
-            v_abs[g, 0] = np.float32(gaussian_grads[g, GRAD_ABS_X])
-            v_abs[g, 1] = np.float32(gaussian_grads[g, GRAD_ABS_Y])
-        for k in range(n_channels):
-            v_colors[g, k] = np.float32(gaussian_grads[g, GRAD_HEAD + k])
+    want_abs = v_abs.shape[0] == n_gaussians
+    for part in prange(n_parts):
+        lo = n_gaussians * part // n_parts
+        hi = n_gaussians * (part + 1) // n_parts
+        for m in range(flatten_ids.shape[0]):
+            g = flatten_ids[m]
+            if g >= lo and g < hi:
+                for k in range(n_cols):
+                    sums[g, k] += isect_grads[m, k]
+        for g in range(lo, hi):
+            v_means2d[g, 0] = sums[g, GRAD_X]
+            v_means2d[g, 1] = sums[g, GRAD_Y]
+            v_conics[g, 0] = sums[g, GRAD_CONIC_A]
+            v_conics[g, 1] = sums[g, GRAD_CONIC_B]
+            v_conics[g, 2] = sums[g, GRAD_CONIC_C]
+            v_opacities[g] = sums[g, GRAD_OPACITY]
+            if want_abs:
+                v_abs[g, 0] = sums[g, GRAD_ABS_X]
+                v_abs[g, 1] = sums[g, GRAD_ABS_Y]
+            for k in range(n_channels):
+                v_colors[g, k] = sums[g, GRAD_HEAD + k]
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -594,6 +599,9 @@ def rasterize_fwd_blocks(
                 continue
             bounded, k_cut, k_det, k_b = _ellipse_rows(ca, cb, cc, sigma_cut)
             mi = np.int32(m)
+            c0 = packed[m, PACK_HEAD] if n_channels == 3 else zero
+            c1 = packed[m, PACK_HEAD + 1] if n_channels == 3 else zero
+            c2 = packed[m, PACK_HEAD + 2] if n_channels == 3 else zero
             for br in range((i_first - y0) // BLOCK, (i_end - 1 - y0) // BLOCK + 1):
                 i_a = max(i_first, y0 + BLOCK * br)
                 i_b = min(i_end, y0 + BLOCK * br + BLOCK)
@@ -616,7 +624,12 @@ def rasterize_fwd_blocks(
                               & (live[b, lane] > zero))
                         use = ok & (next_t > transmittance_threshold)
                         stop = ok & (next_t <= transmittance_threshold)
-                        vis[lane] = alpha * t if use else zero
+                        v = alpha * t if use else zero
+                        vis[lane] = v
+                        if n_channels == 3:  # RGB (training): accumulated here, no second pass over the lanes
+                            acc[0, b, lane] += c0 * v
+                            acc[1, b, lane] += c1 * v
+                            acc[2, b, lane] += c2 * v
                         T[b, lane] = next_t if use else t
                         last[b, lane] = mi if use else last[b, lane]
                         count[b, lane] += one if use else zero
@@ -624,10 +637,11 @@ def rasterize_fwd_blocks(
                         n_stop += 1 if stop else 0
                     block_live[b] -= n_stop
                     tile_live -= n_stop
-                    for k in range(n_channels):
-                        ck = packed[m, PACK_HEAD + k]
-                        for lane in range(LANES):
-                            acc[k, b, lane] += ck * vis[lane]
+                    if n_channels != 3:
+                        for k in range(n_channels):
+                            ck = packed[m, PACK_HEAD + k]
+                            for lane in range(LANES):
+                                acc[k, b, lane] += ck * vis[lane]
         for i in range(y0, y1):
             for j in range(x0, x1):
                 r = i - y0

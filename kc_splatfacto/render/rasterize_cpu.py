@@ -134,29 +134,24 @@ class _RasterizeToPixelsCPU(torch.autograd.Function):
                 K.rasterize_bwd(packed, offsets, bg, T_final, last_ids, v_colors_out, v_alphas_out, C, image_height,
                                 image_width, tile_size, tile_h, tile_w, pixel_offset, max_alpha, alpha_threshold,
                                 isect_grads)
-        grads = np.zeros((C * N, K.GRAD_HEAD + D), np.float64)
-        K.reduce_isect_grads(isect_grads, ids, C * N, grads)
-
         dtype = ctx.means2d.dtype
-        if dtype == torch.float32:
-            v_means2d = torch.empty(C, N, 2)
-            v_conics = torch.empty(C, N, 3)
-            v_opacities = torch.empty(C, N)
-            v_colors = torch.empty(C, N, D)
-            v_abs = torch.empty(C, N, 2) if ctx.absgrad else torch.empty(0, 2)
-            K.split_gaussian_grads(grads, v_means2d.numpy().reshape(C * N, 2), v_conics.numpy().reshape(C * N, 3),
-                                   v_opacities.numpy().reshape(C * N), v_abs.numpy().reshape(-1, 2),
-                                   v_colors.numpy().reshape(C * N, D))
-            if ctx.absgrad:
-                ctx.means2d.absgrad = v_abs
-        else:
-            grads_t = torch.from_numpy(grads).to(dtype).reshape(C, N, K.GRAD_HEAD + D)
-            v_means2d = grads_t[..., K.GRAD_X:K.GRAD_Y + 1].contiguous()
-            v_conics = grads_t[..., K.GRAD_CONIC_A:K.GRAD_CONIC_C + 1].contiguous()
-            v_opacities = grads_t[..., K.GRAD_OPACITY].contiguous()
-            v_colors = grads_t[..., K.GRAD_HEAD:].contiguous()
-            if ctx.absgrad:
-                ctx.means2d.absgrad = grads_t[..., K.GRAD_ABS_X:K.GRAD_ABS_Y + 1].contiguous()
+        # rounded once from the float64 sums into the inputs' dtype (float32 for the other float dtypes)
+        out = dtype if dtype in (torch.float32, torch.float64) else torch.float32
+        v_means2d = torch.empty(C, N, 2, dtype=out)
+        v_conics = torch.empty(C, N, 3, dtype=out)
+        v_opacities = torch.empty(C, N, dtype=out)
+        v_colors = torch.empty(C, N, D, dtype=out)
+        v_abs = torch.empty(C, N, 2, dtype=out) if ctx.absgrad else torch.empty(0, 2, dtype=out)
+        K.reduce_isect_grads(isect_grads, ids, max(1, numba.get_num_threads()),
+                             np.zeros((C * N, K.GRAD_HEAD + D), np.float64),
+                             v_means2d.numpy().reshape(C * N, 2), v_conics.numpy().reshape(C * N, 3),
+                             v_opacities.numpy().reshape(C * N), v_abs.numpy().reshape(-1, 2),
+                             v_colors.numpy().reshape(C * N, D))
+        if out != dtype:
+            v_means2d, v_conics, v_opacities, v_colors, v_abs = (
+                t.to(dtype) for t in (v_means2d, v_conics, v_opacities, v_colors, v_abs))
+        if ctx.absgrad:
+            ctx.means2d.absgrad = v_abs
         v_backgrounds = None
         if ctx.has_backgrounds and ctx.needs_input_grad[4]:
             # d(out)/d(bg) = T_final per pixel
