@@ -47,6 +47,15 @@ def _new_param(tensor: torch.Tensor, like: torch.Tensor) -> torch.nn.Parameter:
     return torch.nn.Parameter(tensor.contiguous(), requires_grad=like.requires_grad)
 
 
+def _kept_rows_then(tensor: torch.Tensor, kept: torch.Tensor, n_new: int) -> torch.Tensor:
+    """A new [len(kept) + n_new, ...] tensor whose first rows are ``tensor[kept]`` (gathered once, straight into
+    place: ``torch.cat([tensor[kept], new])`` copies every kept row twice); the last ``n_new`` rows are left for the
+    caller to fill."""
+    out = tensor.new_empty((len(kept) + n_new, *tensor.shape[1:]))
+    torch.index_select(tensor, 0, kept, out=out[: len(kept)])
+    return out
+
+
 @torch.no_grad()
 def duplicate(params, optimizers: dict[str, torch.optim.Optimizer], state: dict[str, Any], mask: torch.Tensor) -> None:
     """Append a copy of every Gaussian where ``mask`` [N] is True (copies go at the end; their Adam state is zero)."""
@@ -96,11 +105,14 @@ def split(
             p_split = torch.logit(1.0 - torch.sqrt(1.0 - torch.sigmoid(p[sel]))).repeat(repeats)
         else:
             p_split = p[sel].repeat(repeats)
-        return _new_param(torch.cat([p[rest], p_split]), p)
+        out = _kept_rows_then(p, rest, len(p_split))
+        out[len(rest):] = p_split
+        return _new_param(out, p)
 
     def optimizer_fn(key: str, v: torch.Tensor) -> torch.Tensor:
-        zeros = torch.zeros((n_samples * len(sel), *v.shape[1:]), dtype=v.dtype, device=v.device)
-        return torch.cat([v[rest], zeros])
+        out = _kept_rows_then(v, rest, n_samples * len(sel))
+        out[len(rest):] = 0
+        return out
 
     _update_param_with_optimizer(param_fn, optimizer_fn, params, optimizers)
     for key, value in state.items():
