@@ -111,7 +111,7 @@ def _check_inputs(
     quats: Tensor,
     scales: Tensor,
     opacities: Tensor,
-    colors: Tensor,
+    colors: Tensor | SplitSH,  # SplitSH only on the fused cpu path (its shape is checked here)
     viewmats: Tensor,
     Ks: Tensor,
     width: int,
@@ -140,10 +140,6 @@ def _check_inputs(
         raise ValueError(f"Ks must be [C, 3, 3] = [{c}, 3, 3], got {tuple(Ks.shape)}")
     if int(width) != width or int(height) != height or width < 1 or height < 1:
         raise ValueError(f"width and height must be positive integers, got width={width}, height={height}")
-    if isinstance(colors, SplitSH):
-        if sh_degree is None:
-            raise ValueError("colors=SplitSH(...) holds SH coefficients: pass sh_degree")
-        colors.check()
     if sh_degree is None:
         if not (colors.dim() == 2 and colors.shape[0] == n) and not (colors.dim() == 3 and colors.shape[:2] == (c, n)):
             raise ValueError(
@@ -168,8 +164,6 @@ def _check_inputs(
         raise ValueError(f"backgrounds must be [C, D] with C={c}, got {tuple(backgrounds.shape)}")
     if not check_finite:
         return
-    if isinstance(colors, SplitSH):
-        colors = colors.cat()
     for name, tensor in (
         ("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
         ("colors", colors), ("viewmats", viewmats), ("Ks", Ks),
@@ -223,9 +217,13 @@ def rasterization(
     """
     resolved = resolve_backend(backend, means.device)
     fused = resolved == "cpu" and means.dtype in (torch.float32, torch.float64)
-    if isinstance(colors, SplitSH) and not fused:
+    if isinstance(colors, SplitSH):
+        # checked once here; only the fused cpu path reads the two tensors in place, the others get them joined
+        if sh_degree is None:
+            raise ValueError("colors=SplitSH(...) holds SH coefficients: pass sh_degree")
         colors.check()
-        colors = colors.cat()
+        if not fused:
+            colors = colors.cat()
     if resolved == "gsplat":
         import gsplat
 

@@ -341,3 +341,14 @@ def test_split_sh_colors_render_and_differentiate_as_one_tensor(backend):
     for a, b in zip(*results):
         assert torch.equal(a, b)
     assert results[0][2].abs().max() > 0
+
+
+@pytest.mark.parametrize("backend", ["torch", "cpu"])
+def test_split_sh_colors_without_sh_degree_is_a_clear_error(backend):
+    from kc_splatfacto.render import SplitSH
+
+    args = list(_scene_for_modes())
+    n = args[0].shape[0]
+    shs = torch.zeros(n, 4, 3, dtype=args[0].dtype)
+    with pytest.raises(ValueError, match="pass sh_degree"):
+        rasterization(*args[:4], SplitSH(shs[:, :1], shs[:, 1:]), *args[5:], backend=backend)
