@@ -29,10 +29,12 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from kc_splatfacto.losses import wavelets
 from kc_splatfacto.losses.wavelets import MODES, WaveletCoeffs, dwt2
 
 WEIGHTINGS = ("paper", "fine", "uniform")
@@ -93,17 +95,36 @@ def _image_power(coeffs: WaveletCoeffs) -> Tensor:
         return (total / count).clamp_min(POWER_FLOOR).unsqueeze(-1)
 
 
+def _image_power_cpu(coeffs: WaveletCoeffs) -> Tensor:
+    """:func:`_image_power` in float64 from one compiled pass per band tensor (CPU tensors): [B, C, 1]."""
+    from kc_splatfacto.losses._dwt_kernels import plane_square_sums
+
+    batch, channels = coeffs.approx.shape[:2]
+    planes = batch * channels
+    totals = np.zeros(planes)
+    count = 0
+    for band in (coeffs.approx, *coeffs.details):
+        flat = band.detach().reshape(planes, -1)
+        plane_square_sums(flat.contiguous().numpy(), totals)
+        count += flat.shape[1]
+    power = torch.from_numpy(totals / count).clamp_min(POWER_FLOOR)
+    return power.reshape(batch, channels, 1)
+
+
 class _CentredMoments(torch.autograd.Function):
     """Moments of centred, RMS-normalized subbands z = (x - mean(x)) / s of one level, with an analytic backward.
 
-    x [N, 3, P] -> m2 [N, 3] = mean z^2, m4 [N, 3] = mean z^4 (if wanted), cov [N, 3, 3] = z z^T / (P - 1) (if wanted).
-    Backward: dz = z (2 g2 + 4 g4 z^2) / P + (G + G^T) z / (P - 1), then dx = (dz - mean(dz)) / s. That is ~5 passes
-    over the band where autograd through the elementwise chain takes ~12 (the losses' main cost after the DWT).
-    s is a detached constant.
+    x [..., 3, P] -> m2 [..., 3] = mean z^2, m4 [..., 3] = mean z^4 (if wanted), cov [..., 3, 3] = z z^T / (P - 1)
+    (if wanted). Backward: dz = z (2 g2 + 4 g4 z^2) / P + (G + G^T) z / (P - 1), then dx = (dz - mean(dz)) / s; s is a
+    detached constant. On CPU each direction is one compiled pass per plane (``_dwt_kernels.band_moments`` and its
+    adjoint, float64 sums; inv_rms comes in float64); elsewhere ~5 torch passes over the band where autograd through
+    the elementwise chain takes ~12.
     """
 
     @staticmethod
     def forward(ctx, flat: Tensor, inv_rms: Tensor, want_m4: bool, want_cov: bool):
+        if wavelets.uses_compiled_kernels(flat):
+            return _CentredMoments._forward_cpu(ctx, flat, inv_rms, want_m4, want_cov)
         count = flat.shape[-1]
         z = torch.addcmul(-flat.mean(dim=-1, keepdim=True) * inv_rms, flat, inv_rms)  # (x - mean) / s, fused
         m2 = torch.linalg.vecdot(z, z) / count
@@ -117,8 +138,29 @@ class _CentredMoments(torch.autograd.Function):
         return m2, m4, cov
 
     @staticmethod
+    def _forward_cpu(ctx, flat: Tensor, inv_rms: Tensor, want_m4: bool, want_cov: bool):
+        from kc_splatfacto.losses._dwt_kernels import N_DETAIL_BANDS, band_moments
+
+        lead = flat.shape[:-2]
+        bands = flat.detach().reshape(-1, N_DETAIL_BANDS, flat.shape[-1]).contiguous()
+        planes = bands.shape[0]
+        means, m2, m4 = (np.zeros((planes, N_DETAIL_BANDS)) for _ in range(3))
+        cross = np.zeros((planes, N_DETAIL_BANDS, N_DETAIL_BANDS))
+        scale = inv_rms.detach().to(torch.float64).reshape(planes).contiguous().numpy()
+        band_moments(bands.numpy(), scale, want_m4, want_cov, means, m2, m4, cross)
+        ctx.save_for_backward(bands)
+        ctx.cpu = (means, scale, flat.shape)
+
+        def as_output(moment: np.ndarray) -> Tensor:
+            return torch.from_numpy(moment).to(flat.dtype).reshape(*lead, *moment.shape[1:])
+
+        return as_output(m2), as_output(m4) if want_m4 else None, as_output(cross) if want_cov else None
+
+    @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_m2, grad_m4, grad_cov):
+        if hasattr(ctx, "cpu"):
+            return _CentredMoments._backward_cpu(ctx, grad_m2, grad_m4, grad_cov), None, None, None
         z, z2, inv_rms = ctx.saved_tensors
         count = z.shape[-1]
         # the 1/s of dx = (dz - mean(dz)) / s is folded into the small coefficients, not applied to the band
@@ -139,12 +181,41 @@ class _CentredMoments(torch.autograd.Function):
         grad.sub_(grad.mean(dim=-1, keepdim=True))
         return grad, None, None, None
 
+    @staticmethod
+    def _backward_cpu(ctx, grad_m2: Tensor | None, grad_m4: Tensor | None, grad_cov: Tensor | None) -> Tensor:
+        from kc_splatfacto.losses._dwt_kernels import N_DETAIL_BANDS, band_moments_adjoint
+
+        (bands,) = ctx.saved_tensors
+        means, scale, flat_shape = ctx.cpu
+        planes, _, count = bands.shape
+        column = torch.from_numpy(scale).unsqueeze(-1)  # [N, 1] float64
+
+        def coefficients(grad: Tensor | None, factor: float) -> np.ndarray:
+            if grad is None:
+                return np.zeros((planes, N_DETAIL_BANDS))
+            return (grad.to(torch.float64).reshape(planes, N_DETAIL_BANDS) * column * factor).numpy()
+
+        if grad_cov is None:
+            sym = np.zeros((planes, N_DETAIL_BANDS, N_DETAIL_BANDS))
+        else:
+            matrix = grad_cov.to(torch.float64).reshape(planes, N_DETAIL_BANDS, N_DETAIL_BANDS)
+            sym = ((matrix + matrix.transpose(-1, -2)) * (column.unsqueeze(-1) / max(count - 1, 1))).numpy()
+        grad = torch.empty_like(bands)
+        band_moments_adjoint(bands.numpy(), scale, means, coefficients(grad_m2, 2.0 / count),
+                             coefficients(grad_m4, 4.0 / count), np.ascontiguousarray(sym), grad.numpy())
+        return grad.reshape(flat_shape)
+
 
 def _level_moments(coeffs: WaveletCoeffs, want_m4: bool, want_cov: bool) -> tuple[list[tuple], Tensor]:
     """Per level (m2 [B, C, 3], m4 or None, cov [B, C, 3, 3] or None) of the RMS-normalized centred subbands,
     and the image power s^2 [B, C, 1] they are normalized by."""
-    power = _image_power(coeffs)
-    inv_rms = torch.rsqrt(power).unsqueeze(-1)  # [B, C, 1, 1]
+    if wavelets.uses_compiled_kernels(coeffs.approx):
+        power64 = _image_power_cpu(coeffs)
+        power = power64.to(coeffs.approx.dtype)
+        inv_rms = torch.rsqrt(power64).unsqueeze(-1)  # [B, C, 1, 1] float64: the compiled pass's scale
+    else:
+        power = _image_power(coeffs)
+        inv_rms = torch.rsqrt(power).unsqueeze(-1)  # [B, C, 1, 1]
     moments = [_CentredMoments.apply(band.flatten(-2), inv_rms, want_m4, want_cov) for band in coeffs.details]
     return moments, power
 
@@ -325,12 +396,47 @@ def wavelet_l1(pred: WaveletBands, gt: WaveletBands, wavelet_weighting: str = "p
     gt = _check_pair(pred, gt)
     if pred.coeffs.levels == 0:
         return _no_band_loss(pred.coeffs)
-    weights = level_weights(pred.coeffs.levels, wavelet_weighting)
+    # sum over the 3 orientations of each one's mean = 3 * mean over the level's [B, C, 3, h, w]
+    weights = [3.0 * weight for weight in level_weights(pred.coeffs.levels, wavelet_weighting)]
+    if wavelets.uses_compiled_kernels(pred.coeffs.approx):
+        return _WeightedBandL1.apply(weights, [band.detach() for band in gt.coeffs.details], *pred.coeffs.details)
     loss = pred.coeffs.approx.new_zeros(())
     for weight, band_pred, band_gt in zip(weights, pred.coeffs.details, gt.coeffs.details):
-        # sum over the 3 orientations of each one's mean = 3 * mean over the level's [B, C, 3, h, w]
-        loss = loss + (weight * 3.0) * F.l1_loss(band_pred, band_gt.detach())
+        loss = loss + weight * F.l1_loss(band_pred, band_gt.detach())
     return loss
+
+
+class _WeightedBandL1(torch.autograd.Function):
+    """sum_j w_j mean|pred_j - gt_j| over the levels' detail bands on CPU, one compiled pass per level each way
+    (float64 sums); the backward is w_j sign(pred_j - gt_j) / count_j, 0 where equal (torch's l1_loss)."""
+
+    @staticmethod
+    def forward(ctx, weights: list[float], targets: list[Tensor], *preds: Tensor) -> Tensor:
+        from kc_splatfacto.losses._dwt_kernels import abs_difference_sum
+
+        total = 0.0
+        flat_pairs = []
+        for weight, pred, target in zip(weights, preds, targets):
+            pair = (pred.detach().contiguous().view(-1), target.contiguous().view(-1))
+            total += weight * abs_difference_sum(pair[0].numpy(), pair[1].numpy()) / max(pair[0].numel(), 1)
+            flat_pairs.append(pair)
+        ctx.flat_pairs = flat_pairs
+        ctx.weights = weights
+        ctx.shapes = [pred.shape for pred in preds]
+        return preds[0].new_tensor(total)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_loss: Tensor):
+        from kc_splatfacto.losses._dwt_kernels import abs_difference_grad
+
+        upstream = float(grad_loss)
+        grads = []
+        for weight, (pred, target), shape in zip(ctx.weights, ctx.flat_pairs, ctx.shapes):
+            grad = torch.empty_like(pred)
+            abs_difference_grad(pred.numpy(), target.numpy(), upstream * weight / max(pred.numel(), 1), grad.numpy())
+            grads.append(grad.view(shape))
+        return None, None, *grads
 
 
 def kc_loss(pred: WaveletBands, gt: WaveletBands | None = None, kc_supervised: bool = True) -> Tensor:

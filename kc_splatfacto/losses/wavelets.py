@@ -4,14 +4,14 @@
 orientations in PyWavelets' order (cH, cV, cD) = the paper's (LH, HL, HH). The coefficients equal
 `pywt.wavedec2(x, wave, mode=mode, level=levels)` (reversed) for the modes symmetric, reflect, zero, periodization.
 
-Implementation: a level is one extension of the image on both axes followed by ONE strided `conv2d` that applies
-the four separable 2D filters (lo/hi along H times lo/hi along W) at once. The extensions are `F.pad` (zero, reflect,
-circular for periodization, which first repeats the last sample of an odd axis as PyWavelets does) or, for
-half-sample symmetric, slices and flips with a small autograd Function whose backward folds the border gradients
-back; axes shorter than the extension fall back to an exact index-map gather. Gradients are exact in every mode
-(float64 gradcheck passes) and the transform runs unchanged on any device. PyWavelets is never imported here: the
-filter taps come from Daubechies' spectral factorization (`daubechies_filters`), checked against `pywt.Wavelet` in
-the tests. docs/losses.md has the measurements behind these choices.
+Implementation: a level is one extension of the image on both axes followed by the four separable 2D filters (lo/hi
+along H times lo/hi along W) at stride 2. On CPU (`_SeparableLevel`, the index-map modes) that is two compiled
+separable passes that read the extension through index maps, float64 sums, with their adjoints written out
+(`_dwt_kernels.py`); elsewhere, and for the zero mode, ONE strided `conv2d` with the 2D bank after `F.pad` or an
+index gather (the torch path, also the tests' oracle). Gradients are exact in every mode (float64 gradcheck passes)
+and the transform runs on any device. PyWavelets is never imported here: the filter taps come from Daubechies'
+spectral factorization (`daubechies_filters`), checked against `pywt.Wavelet` in the tests. docs/losses.md has the
+measurements behind these choices.
 """
 
 from __future__ import annotations
@@ -182,7 +182,7 @@ def _index_tensor(n: int, filter_len: int, mode: str, device: torch.device) -> T
 def _pad(x: Tensor, filter_len: int, mode: str) -> Tensor:
     """Extend [N, 1, H, W] on both spatial axes so a valid stride-2 correlation yields one DWT level.
 
-    The torch path: every mode on devices other than the CPU, and the zero mode on the CPU (`_ExtendedLevel` does
+    The torch path: every mode on devices other than the CPU, and the zero mode on the CPU (`_SeparableLevel` does
     the other modes there). F.pad where it builds the same extension, two index gathers otherwise. On a GPU the step is bound by kernel
     launches, not passes: the two-gather path (2 launches forward, 2 backward) beat a slice/flip path (~9 forward,
     ~14 backward) for the symmetric mode; measured on an H100 (docs/results/gpu/README.md).
@@ -209,69 +209,90 @@ def _pad(x: Tensor, filter_len: int, mode: str) -> Tensor:
 
 
 @functools.cache
-def _phase_bank(wave: str, dtype: torch.dtype, device: torch.device) -> Tensor:
-    """[4, 4, L/2, L/2] weights that turn the adjoint of the stride-2 correlation with the analysis bank into one
-    stride-1 convolution (polyphase form).
-
-    grad_ext[2r + a, 2s + b] = sum_{c,i,j} bank[c, a + 2i, b + 2j] grad_out[c, r - i, s - j] for the four parities
-    (a, b): output channel 2a + b of `conv2d(grad_out, phase_bank, padding=L/2 - 1)` at (r, s). On CPU this is ~2-3x
-    faster than torch's transposed convolution (the strided-conv backward), which takes a slow path for 1 input
-    channel and stride 2.
-    """
-    bank = _filter_bank_np(wave)[:, 0]  # [4, L, L]
-    half = bank.shape[-1] // 2
-    phases = np.empty((4, 4, half, half))
-    for a in range(2):
-        for b in range(2):
-            # tap i' of the correlation reads grad_out[r - (half - 1 - i')]: filter rows a + 2 (half - 1 - i')
-            phases[2 * a + b] = bank[:, a::2, b::2][:, ::-1, ::-1]
-    return torch.as_tensor(phases, dtype=dtype, device=device)
+def _correlation_taps(wave: str) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) [L] float64: the taps one level correlates with (the decomposition filters reversed), as the bank's."""
+    dec_lo, dec_hi = daubechies_filters(wave)
+    return np.ascontiguousarray(dec_lo[::-1]), np.ascontiguousarray(dec_hi[::-1])
 
 
-class _ExtendedLevel(torch.autograd.Function):
-    """One DWT level on CPU: x [N, 1, H, W] -> conv2d(extend(x), bank, stride=2) [N, 4, h, w], extension by index maps.
+@functools.cache
+def _extension_maps(n: int, filter_len: int, mode: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """An axis's index map (`_extension_index`) and its inverse over the positions one level reads, as CSR:
+    image sample t is read at extended positions ``pos[ptr[t]:ptr[t + 1]]`` (ascending)."""
+    index = _extension_index(n, filter_len, mode).astype(np.int64)
+    n_out = (index.size - filter_len) // 2 + 1
+    used = index[: 2 * (n_out - 1) + filter_len]
+    pos = np.argsort(used, kind="stable").astype(np.int64)
+    ptr = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(used, minlength=n), out=ptr[1:])
+    return index, ptr, pos
 
-    Forward: one gather pass builds the extended image (``_dwt_kernels.gather_extension``), then torch's strided
-    conv. Backward: the polyphase convolution (`_phase_bank`) and one scatter pass that folds the extension back
-    (``_dwt_kernels.scatter_phases``). Same values as the torch path (`_pad` + conv2d) up to float rounding of the
-    gradient's summation order; float64 gradcheck passes (tests/losses/test_wavelets.py).
+
+class _SeparableLevel(torch.autograd.Function):
+    """One DWT level on CPU: x [N, 1, H, W] -> (cA [N, 1, h, w], (cH, cV, cD) [N, 3, h, w]), extension by index maps.
+
+    Two compiled separable passes (``_dwt_kernels.level_rows`` / ``level_cols``, float64 sums) and their adjoints
+    gathered per image row; the same coefficients as the torch path (`_pad` + the bank's conv2d) to float rounding,
+    float64 gradcheck passes (tests/losses/test_wavelets.py). The detail bands come out contiguous, so the moment
+    pass and the L1 read them without copies.
     """
 
     @staticmethod
-    def forward(ctx, x: Tensor, bank: Tensor, phases: Tensor, rows: Tensor, cols: Tensor) -> Tensor:
-        from kc_splatfacto.losses._dwt_kernels import gather_extension
+    def forward(ctx, x: Tensor, wave: str, mode: str):
+        from kc_splatfacto.losses import _dwt_kernels as kernels
 
         count, _, height, width = x.shape
-        extended = x.new_empty((count, 1, rows.numel(), cols.numel()))
-        gather_extension(x.detach()[:, 0].numpy(), rows.numpy(), cols.numpy(), extended[:, 0].numpy())
-        ctx.save_for_backward(phases, rows, cols)
+        filter_len = filter_length(wave)
+        taps_lo, taps_hi = _correlation_taps(wave)
+        rows, row_ptr, row_pos = _extension_maps(height, filter_len, mode)
+        cols, _, _ = _extension_maps(width, filter_len, mode)
+        height_out = (rows.size - filter_len) // 2 + 1
+        width_out = (cols.size - filter_len) // 2 + 1
+        low = np.empty((count, height, width_out))
+        high = np.empty_like(low)
+        kernels.level_rows(x.detach().contiguous()[:, 0].numpy(), cols, taps_lo, taps_hi, low, high)
+        approx = x.new_empty((count, 1, height_out, width_out))
+        detail = x.new_empty((count, kernels.N_DETAIL_BANDS, height_out, width_out))
+        kernels.level_cols(low, high, rows, taps_lo, taps_hi, approx.numpy(), detail.numpy())
+        ctx.maps = (cols, row_ptr, row_pos, taps_lo, taps_hi)
         ctx.image_shape = (count, 1, height, width)
-        return F.conv2d(extended, bank, stride=2)
+        return approx, detail
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, grad: Tensor):
-        from kc_splatfacto.losses._dwt_kernels import scatter_phases
+    def backward(ctx, grad_approx: Tensor, grad_detail: Tensor):
+        from kc_splatfacto.losses import _dwt_kernels as kernels
 
-        phases, rows, cols = ctx.saved_tensors
-        by_parity = F.conv2d(grad.contiguous(), phases, padding=phases.shape[-1] - 1)  # [N, 4, h2, w2]
-        grad_x = grad.new_zeros(ctx.image_shape)
-        scatter_phases(by_parity.numpy(), rows.numpy(), cols.numpy(), grad_x[:, 0].numpy())
-        return grad_x, None, None, None, None
+        cols, row_ptr, row_pos, taps_lo, taps_hi = ctx.maps
+        count, _, height, _ = ctx.image_shape
+        low_grad = np.empty((count, height, grad_detail.shape[-1]))
+        high_grad = np.empty_like(low_grad)
+        kernels.level_cols_adjoint(grad_approx.contiguous().numpy(), grad_detail.contiguous().numpy(), row_ptr,
+                                   row_pos, taps_lo, taps_hi, low_grad, high_grad)
+        grad_x = grad_detail.new_empty(ctx.image_shape)
+        kernels.level_rows_adjoint(low_grad, high_grad, cols, taps_lo, taps_hi, grad_x[:, 0].numpy())
+        return grad_x, None, None
 
 
 # modes whose extension is an index map (zero padding is not: it inserts values)
 _INDEX_MODES = ("symmetric", "reflect", "periodization")
 
 
-def _level(x: Tensor, wave: str, filter_len: int, mode: str, bank: Tensor) -> Tensor:
-    """One DWT level of x [N, 1, H, W]: [N, 4, h, w] = (cA, cH, cV, cD)."""
-    if x.device.type == "cpu" and mode in _INDEX_MODES:
+def uses_compiled_kernels(x: Tensor) -> bool:
+    """Whether the wavelet losses run x's level, moments and L1 through the numba kernels (CPU tensors) rather than
+    torch ops (other devices; also the tests' oracle, by patching this to False)."""
+    return x.device.type == "cpu"
+
+
+def _level(x: Tensor, wave: str, filter_len: int, mode: str, bank: Tensor) -> tuple[Tensor, Tensor]:
+    """One DWT level of x [N, 1, H, W]: (cA [N, 1, h, w], (cH, cV, cD) [N, 3, h, w])."""
+    if uses_compiled_kernels(x) and mode in _INDEX_MODES:
         # (periodization's index map repeats the last sample of an odd axis itself, as PyWavelets does)
-        rows = _index_tensor(x.shape[-2], filter_len, mode, x.device)
-        cols = _index_tensor(x.shape[-1], filter_len, mode, x.device)
-        return _ExtendedLevel.apply(x, bank, _phase_bank(wave, x.dtype, x.device), rows, cols)
-    return F.conv2d(_pad(x, filter_len, mode), bank, stride=2)
+        return _SeparableLevel.apply(x, wave, mode)
+    out = F.conv2d(_pad(x, filter_len, mode), bank, stride=2)
+    # split, not two slices: its backward is one cat instead of two zero-filled full-size buffers
+    approx, detail = out.split([1, 3], dim=1)
+    return approx, detail
 
 
 # --------------------------------------------------------------------------------------------------- transform
@@ -319,10 +340,8 @@ def dwt2(x: Tensor, wave: str = "db3", levels: int = 3, mode: str = "symmetric")
     current = x.to(dtype).reshape(batch * channels, 1, height, width)
     details = []
     for _ in range(kept):
-        out = _level(current, wave, flen, mode, bank)  # [B*C, 4, h, w]
-        h, w = out.shape[-2:]
-        # split, not two slices: its backward is one cat instead of two zero-filled full-size buffers
-        current, detail = out.split([1, 3], dim=1)
+        current, detail = _level(current, wave, flen, mode, bank)  # [B*C, 1, h, w], [B*C, 3, h, w]
+        h, w = detail.shape[-2:]
         details.append(detail.reshape(batch, channels, 3, h, w))
     approx = current.reshape(batch, channels, *current.shape[-2:])
     return WaveletCoeffs(approx=approx, details=details)

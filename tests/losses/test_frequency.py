@@ -325,3 +325,52 @@ def test_gradcheck_float64(term):
     }
     # fast mode: the Jacobian against finite differences along random directions (full mode is ~10x slower)
     assert torch.autograd.gradcheck(functions[term], (pred,), eps=1e-6, atol=1e-6, rtol=1e-5, fast_mode=True)
+
+
+@pytest.mark.parametrize("correlation", [False, True])
+def test_compiled_cpu_path_equals_torch_path(castle_p30, monkeypatch, correlation):
+    # On CPU the level, the moments and the L1 run as numba kernels (float64 sums); the torch path (what other devices
+    # run) is the oracle: every term and the image gradient on a real photo in float32, training's precision and
+    # size, with a render-like blurred prediction (small detail bands: the kurtosis's sensitive case)
+    from kc_splatfacto.losses import wavelets
+
+    gt = load_image(castle_p30).float()
+    pred = blur(gt, sigma=1.0) + 0.01 * torch.randn(gt.shape, generator=torch.Generator().manual_seed(3))
+    loss = FrequencyLoss(wavelet_weight=1.0, kc_weight=1.0, cbc_weight=1e3, cbc_correlation=correlation)
+
+    def terms_and_grad():
+        x = pred.clone().requires_grad_(True)
+        terms = loss(x, loss.prepare_target(gt))
+        sum(terms.values()).backward()
+        return {k: v.detach() for k, v in terms.items()}, x.grad
+
+    compiled, compiled_grad = terms_and_grad()
+    monkeypatch.setattr(wavelets, "uses_compiled_kernels", lambda x: False)
+    reference, reference_grad = terms_and_grad()
+    for key in reference:
+        torch.testing.assert_close(compiled[key], reference[key], rtol=1e-5, atol=0)
+    scale = reference_grad.abs().max()
+    torch.testing.assert_close(compiled_grad / scale, reference_grad / scale, rtol=0, atol=1e-5)
+
+
+def test_compiled_wavelet_l1_gradient_is_torch_l1_loss_including_ties():
+    # sign(0) = 0, as torch's l1_loss backward: equal coefficients (a copied region) get no gradient
+    from kc_splatfacto.losses import wavelets
+
+    torch.manual_seed(4)
+    gt = torch.rand(1, 2, 40, 40)
+    pred = gt.clone()
+    pred[..., 20:, :] += 0.1 * torch.randn(1, 2, 20, 40)  # top half equal to gt: its fine bands tie exactly
+    results = []
+    for compiled in (True, False):
+        x = pred.clone().requires_grad_(True)
+        original = wavelets.uses_compiled_kernels
+        wavelets.uses_compiled_kernels = (lambda t: True) if compiled else (lambda t: False)
+        try:
+            value = wavelet_l1(bands(x), target(gt), "fine")
+            value.backward()
+        finally:
+            wavelets.uses_compiled_kernels = original
+        results.append((value.detach(), x.grad))
+    torch.testing.assert_close(results[0][0], results[1][0], rtol=1e-6, atol=0)
+    torch.testing.assert_close(results[0][1], results[1][1], rtol=0, atol=1e-7)

@@ -182,9 +182,10 @@ def test_fast_padding_equals_index_map_on_short_axes(mode):
 
 @pytest.mark.parametrize("mode", ["symmetric", "reflect", "periodization"])
 def test_cpu_level_equals_torch_path(mode):
-    # On CPU a level is a gather, a strided conv and, backward, a polyphase conv and a scatter (_ExtendedLevel); the
-    # torch path (_pad + conv2d, autograd's backward) is the oracle: the same coefficients exactly, the same gradient
-    # to float64 rounding, for every filter length and for axes shorter than the extension (odd ones included).
+    # On CPU a level is two compiled separable passes and, backward, their adjoints gathered per image row
+    # (_SeparableLevel); the torch path (_pad + the 2D bank's conv2d, autograd's backward) is the oracle: the same
+    # coefficients and gradients to float64 rounding, for every filter length and for axes shorter than the extension
+    # (odd ones included), with gradients flowing into both outputs (approx feeds the next level, details the losses).
     import torch.nn.functional as F
 
     from kc_splatfacto.losses.wavelets import _filter_bank, _level, _pad, filter_length
@@ -195,13 +196,47 @@ def test_cpu_level_equals_torch_path(mode):
         bank = _filter_bank(wave, torch.float64, torch.device("cpu"))
         for height, width in [(1, 1), (2, 5), (5, 6), (11, 12), (13, 20), (37, 24)]:
             x = torch.rand(3, 1, height, width, dtype=torch.float64, requires_grad=True)
-            ours = _level(x, wave, flen, mode, bank)
+            approx, detail = _level(x, wave, flen, mode, bank)
+            assert detail.is_contiguous() and approx.shape[1] == 1 and detail.shape[1] == 3
+            ours = torch.cat([approx, detail], dim=1)
             reference = F.conv2d(_pad(x, flen, mode), bank, stride=2)
-            torch.testing.assert_close(ours, reference, rtol=0, atol=0)
+            torch.testing.assert_close(ours, reference, rtol=0, atol=1e-14)
             weights = torch.randn_like(ours)
             (grad,) = torch.autograd.grad((ours * weights).sum(), x)
             (grad_ref,) = torch.autograd.grad((reference * weights).sum(), x)
             torch.testing.assert_close(grad, grad_ref, rtol=0, atol=1e-12)
+            # gradcheck of the compiled adjoint itself (not only agreement with autograd's conv backward)
+            if height * width <= 60:
+                assert torch.autograd.gradcheck(lambda t: torch.cat(_level(t, wave, flen, mode, bank), dim=1), (x,))
+
+
+def test_cpu_level_results_do_not_depend_on_thread_count():
+    import numba
+
+    from kc_splatfacto.losses.frequency import FrequencyLoss
+
+    torch.manual_seed(1)
+    gt = torch.rand(1, 3, 64, 96)
+    loss_fn = FrequencyLoss()
+    target = loss_fn.prepare_target(gt)
+
+    def run():
+        pred = (gt + 0.05 * torch.randn(gt.shape, generator=torch.Generator().manual_seed(2))).requires_grad_()
+        losses = loss_fn(pred, target)
+        sum(losses.values()).backward()
+        return [v.detach() for v in losses.values()], pred.grad
+
+    before = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        single = run()
+        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+        many = run()
+    finally:
+        numba.set_num_threads(before)
+    for a, b in zip(single[0], many[0]):
+        assert torch.equal(a, b)
+    assert torch.equal(single[1], many[1])
 
 
 def test_cpu_level_gradient_in_float32_matches_float64():
