@@ -7,7 +7,11 @@ steps with growth capped at that state's Gaussian count, so the only difference 
 Target: a kc-splatfacto step at most 1.10x a splatfacto step.
 
     .venv/bin/python benchmarks/bench_train.py [--rounds 3] [--steps 60] [--warmup-steps 300] [--downscale 4]
-        [--methods splatfacto kc-splatfacto kc-splatfacto-corr]
+        [--methods splatfacto kc-splatfacto kc-splatfacto-corr] [--warmup-from RUN_DIR]
+
+``--warmup-from`` starts every method from an existing splatfacto run's last checkpoint instead of a fresh warm-up:
+the way to time two code versions at the SAME state (a run of another version trains a different state, e.g. 69.5k
+against 79k Gaussians between the pre-issue and the current code, because their float rounding differs).
 
 ``--methods`` names the registered methods to time (the first is the baseline of the ratios; default splatfacto and
 kc-splatfacto); the target line is printed for every method after the first.
@@ -60,6 +64,8 @@ def main() -> int:
     parser.add_argument("--steps", type=int, default=60)
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--steps-scale", type=float, default=0.1)
+    parser.add_argument("--warmup-from", type=Path, default=None,
+                        help="a splatfacto run folder (holding nerfstudio_models/) to start from instead of a warm-up")
     parser.add_argument("--methods", nargs="+", default=["splatfacto", "kc-splatfacto"],
                         help="registered methods; the first is the ratios' baseline")
     args = parser.parse_args()
@@ -76,12 +82,27 @@ def main() -> int:
         out = Path(tmp)
         warm = make_config("splatfacto", args.scene, out, args.downscale, args.warmup_steps, args.steps_scale)
         warm.timestamp = "warmup"
-        warm_trainer = Trainer(warm)
         t0 = time.perf_counter()
-        run_dir = warm_trainer.train()
+        if args.warmup_from is not None:
+            run_dir = args.warmup_from
+            checkpoints = sorted((run_dir / "nerfstudio_models").glob("step-*.ckpt"))
+            if not checkpoints:
+                print(f"no checkpoint in {run_dir / 'nerfstudio_models'}: give a splatfacto run's folder",
+                      file=sys.stderr)
+                return 1
+            args.warmup_steps = int(checkpoints[-1].stem.split("-")[1])
+            warm.max_num_iterations = args.warmup_steps
+            warm.load_dir = run_dir / "nerfstudio_models"
+            warm_trainer = Trainer(warm)
+            warm_trainer.setup()  # loads the checkpoint: the state every method starts from
+            source = f"loaded from {run_dir} (step {args.warmup_steps})"
+        else:
+            warm_trainer = Trainer(warm)
+            run_dir = warm_trainer.train()
+            source = f"splatfacto {args.warmup_steps} steps"
         n_gaussians = warm_trainer.model.num_points
         height, width = warm_trainer.datamanager.train_dataset.image_uint8(0).shape[:2]
-        print(f"warm-up: splatfacto {args.warmup_steps} steps -> {n_gaussians} Gaussians at {width}x{height} "
+        print(f"warm-up: {source} -> {n_gaussians} Gaussians at {width}x{height} "
               f"in {time.perf_counter() - t0:.1f} s")
         per_method: dict[str, dict[str, list[float]]] = {m: {p: [] for p in PHASES + ("step",)}
                                                         for m in args.methods}
