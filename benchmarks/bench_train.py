@@ -23,6 +23,7 @@ import kc_splatfacto  # noqa: E402,F401  (sets OMP_WAIT_POLICY before torch load
 
 import argparse  # noqa: E402
 import copy  # noqa: E402
+import shutil  # noqa: E402
 import statistics  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
@@ -84,18 +85,22 @@ def main() -> int:
         warm.timestamp = "warmup"
         t0 = time.perf_counter()
         if args.warmup_from is not None:
-            run_dir = args.warmup_from
-            checkpoints = sorted((run_dir / "nerfstudio_models").glob("step-*.ckpt"))
-            if not checkpoints:
-                print(f"no checkpoint in {run_dir / 'nerfstudio_models'}: give a splatfacto run's folder",
+            checkpoints = sorted((args.warmup_from / "nerfstudio_models").glob("step-*.ckpt"))
+            if not checkpoints or not (args.warmup_from / "config.yml").is_file():
+                print(f"no config.yml and checkpoint in {args.warmup_from}: give a splatfacto run's folder",
                       file=sys.stderr)
                 return 1
+            # a copy: the timed runs resume the run they load (same config), so they write checkpoints into it
+            run_dir = out / "warmup-source"
+            (run_dir / "nerfstudio_models").mkdir(parents=True)
+            shutil.copy2(args.warmup_from / "config.yml", run_dir / "config.yml")
+            shutil.copy2(checkpoints[-1], run_dir / "nerfstudio_models" / checkpoints[-1].name)
             args.warmup_steps = int(checkpoints[-1].stem.split("-")[1])
             warm.max_num_iterations = args.warmup_steps
             warm.load_dir = run_dir / "nerfstudio_models"
             warm_trainer = Trainer(warm)
             warm_trainer.setup()  # loads the checkpoint: the state every method starts from
-            source = f"loaded from {run_dir} (step {args.warmup_steps})"
+            source = f"loaded from {checkpoints[-1]}"
         else:
             warm_trainer = Trainer(warm)
             run_dir = warm_trainer.train()
