@@ -116,9 +116,9 @@ class _CentredMoments(torch.autograd.Function):
 
     x [..., 3, P] -> m2 [..., 3] = mean z^2, m4 [..., 3] = mean z^4 (if wanted), cov [..., 3, 3] = z z^T / (P - 1)
     (if wanted). Backward: dz = z (2 g2 + 4 g4 z^2) / P + (G + G^T) z / (P - 1), then dx = (dz - mean(dz)) / s; s is a
-    detached constant. On CPU each direction is one compiled pass per plane (``_dwt_kernels.band_moments`` and its
-    adjoint, float64 sums; inv_rms comes in float64); elsewhere ~5 torch passes over the band where autograd through
-    the elementwise chain takes ~12.
+    detached constant. On CPU each direction is one compiled call (``_dwt_kernels.band_moments`` and its adjoint,
+    parallel over pixel chunks, float64 sums; inv_rms comes in float64); elsewhere ~5 torch passes over the band where
+    autograd through the elementwise chain takes ~12.
     """
 
     @staticmethod
