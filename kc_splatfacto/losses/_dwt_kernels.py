@@ -52,6 +52,12 @@ def _split_phases(values, even, odd):
         odd[k] = values[2 * k + 1]
 
 
+@njit(inline="always")
+def _tap_phase(j, even, odd):
+    """(phase buffer, offset) that tap j of a stride-2 correlation reads: ``phase[s + offset]`` for output s."""
+    return (even if j % 2 == 0 else odd), j // 2
+
+
 @njit(parallel=True, cache=True)
 def level_rows(image, cols, taps_lo, taps_hi, low, high):
     """W pass: ``low`` / ``high`` [N, H, w] (float64) = each image row, extended through ``cols``, correlated with
@@ -76,14 +82,11 @@ def level_rows(image, cols, taps_lo, taps_hi, low, high):
             low[n, r, s] = 0.0
             high[n, r, s] = 0.0
         for j in range(n_taps):
-            phase = even if j % 2 == 0 else odd
-            offset = j // 2
-            tap_lo = taps_lo[j]
-            tap_hi = taps_hi[j]
+            phase, offset = _tap_phase(j, even, odd)
             for s in range(width_out):
                 value = phase[s + offset]
-                low[n, r, s] += tap_lo * value
-                high[n, r, s] += tap_hi * value
+                low[n, r, s] += taps_lo[j] * value
+                high[n, r, s] += taps_hi[j] * value
 
 
 @njit(parallel=True, cache=True)
@@ -155,12 +158,9 @@ def level_rows_adjoint(low_grad, high_grad, cols, taps_lo, taps_hi, grad_image):
         even = np.zeros(n_phase)
         odd = np.zeros(n_phase)
         for j in range(n_taps):
-            phase = even if j % 2 == 0 else odd
-            offset = j // 2
-            tap_lo = taps_lo[j]
-            tap_hi = taps_hi[j]
+            phase, offset = _tap_phase(j, even, odd)
             for s in range(width_out):
-                phase[s + offset] += tap_lo * low_grad[n, t, s] + tap_hi * high_grad[n, t, s]
+                phase[s + offset] += taps_lo[j] * low_grad[n, t, s] + taps_hi[j] * high_grad[n, t, s]
         acc = np.zeros(width)
         # the phases cover the extended positions the correlation reads, [0, 2 (w - 1) + L)
         for k in range(n_phase):
