@@ -107,14 +107,20 @@ def daubechies_filters(wave: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 @functools.cache
+def _correlation_taps(wave: str) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) [L] float64: the taps one level correlates with (the decomposition filters reversed: conv2d and the
+    CPU kernels correlate)."""
+    dec_lo, dec_hi = daubechies_filters(wave)
+    return np.ascontiguousarray(dec_lo[::-1]), np.ascontiguousarray(dec_hi[::-1])
+
+
+@functools.cache
 def _filter_bank_np(wave: str) -> np.ndarray:
     """[4, 1, L, L] cross-correlation weights of the four 2D analysis filters, in the order (cA, cH, cV, cD).
 
-    cH is PyWavelets' 'da' (high-pass along H, low-pass along W), cV is 'ad', cD is 'dd'. conv2d correlates, so the
-    taps are reversed.
+    cH is PyWavelets' 'da' (high-pass along H, low-pass along W), cV is 'ad', cD is 'dd'.
     """
-    dec_lo, dec_hi = daubechies_filters(wave)
-    lo, hi = dec_lo[::-1], dec_hi[::-1]
+    lo, hi = _correlation_taps(wave)
     pairs = ((lo, lo), (hi, lo), (lo, hi), (hi, hi))  # (along H, along W)
     return np.stack([np.outer(fh, fw) for fh, fw in pairs])[:, None]
 
@@ -206,13 +212,6 @@ def _pad(x: Tensor, filter_len: int, mode: str) -> Tensor:
     rows = _index_tensor(height, filter_len, mode, x.device)
     cols = _index_tensor(width, filter_len, mode, x.device)
     return x.index_select(-2, rows).index_select(-1, cols)
-
-
-@functools.cache
-def _correlation_taps(wave: str) -> tuple[np.ndarray, np.ndarray]:
-    """(lo, hi) [L] float64: the taps one level correlates with (the decomposition filters reversed), as the bank's."""
-    dec_lo, dec_hi = daubechies_filters(wave)
-    return np.ascontiguousarray(dec_lo[::-1]), np.ascontiguousarray(dec_hi[::-1])
 
 
 @functools.cache
