@@ -65,6 +65,19 @@ def evaluation_steps(max_steps: int, num: int, extra: Sequence[int] = ()) -> tup
     return tuple(sorted(set(log_spaced_steps(max_steps, num)) | {int(s) for s in extra}))
 
 
+def scene_downscale_factors(data: Sequence[str], factors: Sequence[int] | None) -> dict[str, int | None]:
+    """``--downscale-factor``: one factor for every scene, or one per ``--data`` entry in the same order."""
+    if not factors:
+        return {str(d): None for d in data}
+    if len(factors) == 1:
+        return {str(d): factors[0] for d in data}
+    if len(factors) != len(data):
+        raise BenchArgumentError(
+            f"--downscale-factor: give one factor or one per scene ({len(data)} scenes), got {len(factors)}"
+        )
+    return {str(d): f for d, f in zip(data, factors)}
+
+
 def apply_override(config: Any, assignment: str) -> Any:
     """``config`` with one dotted field set from ``'pipeline.model.kc_weight=1e-4'``, parsed by kc-train's own
     parser (:func:`kc_splatfacto.cli.train.override_config`): the same flags, types, choices and errors as
@@ -222,14 +235,16 @@ def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
     lpips_note = None
     baseline = args.baseline if args.baseline in args.methods else None
     paths: dict[str, Path] = {}
-    for data in args.data:
-        scene = Path(str(data)).name if str(data) != "demo" else "demo"
-        for seed in args.seeds:
+    downscale = scene_downscale_factors(args.data, args.downscale_factor)
+    # seed-major: a study stopped part-way has the same number of paired seeds on every scene
+    for seed in args.seeds:
+        for data in args.data:
+            scene = Path(str(data)).name if str(data) != "demo" else "demo"
             for method in args.methods:
                 config = build_run_config(
                     methods_available[method].config, method=method, data=Path(data), seed=seed,
                     max_steps=args.max_num_iterations, eval_steps=eval_steps, runs_dir=runs_dir,
-                    experiment=scene, downscale_factor=args.downscale_factor, steps_scale=steps_scale,
+                    experiment=scene, downscale_factor=downscale[str(data)], steps_scale=steps_scale,
                     device=args.device, overrides=args.set,
                 )
                 config.steps_per_save = args.steps_per_save if args.steps_per_save > 0 else args.max_num_iterations
@@ -333,7 +348,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--num-evals", type=int, default=8, help="log-spaced test evaluations per run")
     parser.add_argument("--eval-at-steps", type=int, nargs="*", default=[],
                         help="extra evaluation steps besides the log-spaced ones (e.g. 7000 in a 30000-step study)")
-    parser.add_argument("--downscale-factor", type=int, default=None, help="image downscale handed to the dataparser")
+    parser.add_argument("--downscale-factor", type=int, nargs="+", default=None,
+                        help="image downscale handed to the dataparser: one for every scene, or one per --data")
     parser.add_argument(
         "--steps-scale", default="none",
         help="'none' keeps the method's schedule (the first N steps of Splatfacto's), 'auto' = budget / 30000 "

@@ -13,13 +13,16 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any
+from typing import Any, Sequence
 
 import torch
 
 SSIM_CONVENTION = "kornia ssim, gaussian window 11, sigma 1.5, reflect same padding, image mean"
 LPIPS_NET = "alex"
 """LPIPS backbone of every evaluation (the usual choice; 'vgg' is the alternative), named in every output"""
+FINAL_LPIPS_NETS = ("vgg",)
+"""further LPIPS backbones of a run's last evaluation (``lpips_vgg``: the KC-3DGS paper's metric), too slow for
+every evaluation (VGG16 ~10x AlexNet's time)"""
 
 
 def lpips_metric(net: str = LPIPS_NET) -> tuple[Any | None, str | None]:
@@ -63,17 +66,25 @@ def _mean_std(values: list[float]) -> tuple[float | None, float | None]:
 
 
 @torch.no_grad()
-def evaluate_split(model, dataset, *, with_lpips: bool = True, lpips_net: str = LPIPS_NET) -> dict[str, Any]:
+def evaluate_split(
+    model, dataset, *, with_lpips: bool = True, lpips_net: str = LPIPS_NET, extra_lpips_nets: Sequence[str] = ()
+) -> dict[str, Any]:
     """Render every image of ``dataset`` with ``model`` (in eval mode) and compare with the ground truth.
 
+    Args:
+        extra_lpips_nets: further LPIPS backbones (e.g. ``("vgg",)``), each reported as ``lpips_<net>`` beside
+            ``lpips`` (which is ``lpips_net``'s); left out (with ``lpips_<net>_unavailable``) where not computable.
     Returns:
         ``psnr``, ``ssim`` (means), ``psnr_std``, ``ssim_std``, ``lpips`` (mean or None), ``lpips_net`` (the
         backbone), ``lpips_unavailable`` (the reason, when None), ``num_images``, ``render_fps``,
-        ``ssim_convention`` and ``per_image``: a list of ``{"index", "image", "psnr", "ssim", "lpips"}``.
+        ``ssim_convention``, per extra net ``lpips_<net>`` and ``lpips_<net>_std``, and ``per_image``: a list of
+        ``{"index", "image", "psnr", "ssim", "lpips", "lpips_<net>"...}``.
     """
     if len(dataset) == 0:
         raise ValueError("evaluate_split: the dataset is empty (no images in this split)")
     lpips_fn, lpips_reason = lpips_metric(lpips_net) if with_lpips else (None, "not requested")
+    extra = {net: (lpips_metric(net) if with_lpips else (None, "not requested"))
+             for net in extra_lpips_nets if net != lpips_net}
     was_training = model.training
     model.eval()
     per_image: list[dict[str, Any]] = []
@@ -100,6 +111,12 @@ def evaluate_split(model, dataset, *, with_lpips: bool = True, lpips_net: str = 
                 "ssim": metrics["ssim"],
                 "lpips": float(lpips_fn(pred, gt)) if lpips_fn is not None else None,
             }
+            for net, (fn, _) in list(extra.items()):
+                if fn is not None and min(pred.shape[-2:]) < _lpips_min_size(net):
+                    extra[net] = (None, f"LPIPS ({net}) needs images of at least {_lpips_min_size(net)} pixels a "
+                                        f"side, got {tuple(pred.shape[-2:])}")
+                    fn = None
+                record[f"lpips_{net}"] = float(fn(pred, gt)) if fn is not None else None
             per_image.append(record)
     finally:
         model.train(was_training)
@@ -124,4 +141,11 @@ def evaluate_split(model, dataset, *, with_lpips: bool = True, lpips_net: str = 
     }
     if lpips_fn is None:
         result["lpips_unavailable"] = lpips_reason
+    for net, (fn, reason) in extra.items():
+        values = [r[f"lpips_{net}"] for r in per_image] if fn is not None else []
+        result[f"lpips_{net}"], result[f"lpips_{net}_std"] = _mean_std(values) if fn is not None else (None, None)
+        if fn is None:
+            for record in per_image:
+                record[f"lpips_{net}"] = None
+            result[f"lpips_{net}_unavailable"] = reason
     return result

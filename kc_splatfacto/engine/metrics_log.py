@@ -2,11 +2,13 @@
 
 Record schema (shared with kc-eval / kc-bench): every record has ``step`` (int), ``elapsed_s`` (wall clock since the
 start of training, resumed runs continue the count), ``train_s`` (time in training steps only, evaluation and
-checkpointing excluded) and ``kind``:
+checkpointing excluded), on train and eval records ``train_cpu_s`` (the CPU seconds of those steps,
+all threads: other processes on the machine barely move it, where they stretch ``train_s``) and ``kind``:
 - ``"train"``: the loss terms (``main_loss``, ``wavelet_loss``, ... and ``loss``, their sum), ``psnr`` of the training
   view, ``gaussian_count``, ``lr_means``, and on logging steps ``kurtosis_render`` / ``kurtosis_gt`` (per band).
 - ``"eval"``: ``psnr``, ``ssim``, ``lpips`` and ``lpips_net`` (null with ``lpips_unavailable``), ``num_images``,
-  ``split``.
+  ``split``, ``per_image`` (each view's ``psnr``, ``ssim``, ``lpips``), and at the last step ``lpips_vgg`` (the
+  ``final_lpips_nets``; per view too).
 - ``"gradient_shares"``: per loss term ``norm`` / ``share`` / ``top`` of its image gradient (engine/gradient_shares.py).
 - ``"bad_step"``: a skipped step and ``reason``; ``"densify"``: what density control did; ``"checkpoint"``: ``path``.
 """

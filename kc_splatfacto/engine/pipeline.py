@@ -9,7 +9,7 @@ The optimizers and schedules belong to the trainer (they are training state, not
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import torch
 
@@ -80,11 +80,13 @@ class Pipeline:
         """The logged training metrics of one step (PSNR, Gaussian count, per-band kurtosis of render and GT)."""
         return self.model.get_metrics_dict(outputs, batch, with_kurtosis=True)
 
-    def get_average_eval_image_metrics(self, *, split: str = "eval", with_lpips: bool = True) -> dict[str, Any]:
+    def get_average_eval_image_metrics(
+        self, *, split: str = "eval", with_lpips: bool = True, extra_lpips_nets: Sequence[str] = ()
+    ) -> dict[str, Any]:
         """Render every image of the eval (or train) split: mean PSNR/SSIM/LPIPS and per-image values
-        (see :func:`kc_splatfacto.engine.evaluation.evaluate_split`)."""
+        (see :func:`kc_splatfacto.engine.evaluation.evaluate_split`; ``extra_lpips_nets`` adds ``lpips_<net>``)."""
         dataset = self.datamanager.train_dataset if split == "train" else self.datamanager.eval_dataset
-        return evaluate_split(self.model, dataset, with_lpips=with_lpips)
+        return evaluate_split(self.model, dataset, with_lpips=with_lpips, extra_lpips_nets=extra_lpips_nets)
 
     # --------------------------------------------------------------------------------------------- state
     def state_dict(self) -> dict[str, Any]:

@@ -32,6 +32,7 @@ import torch
 
 from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, save_checkpoint
 from kc_splatfacto.engine.config import LoggingConfig, MachineConfig, save_config
+from kc_splatfacto.engine.evaluation import FINAL_LPIPS_NETS
 from kc_splatfacto.engine.gradient_shares import gradient_shares
 from kc_splatfacto.engine.metrics_log import MetricsWriter, ProgressBar
 from kc_splatfacto.engine.optimizers import OptimizersConfig
@@ -76,6 +77,8 @@ class TrainerConfig:
     """evaluate the whole eval split every this many steps (0 turns it off; the last step is always evaluated)"""
     eval_at_steps: tuple[int, ...] = ()
     """extra evaluation steps (e.g. log-spaced ones for quality-against-time reports)"""
+    final_lpips_nets: tuple[str, ...] = FINAL_LPIPS_NETS
+    """further LPIPS backbones of the last step's evaluation (``lpips_vgg`` in its record; every evaluation has alex)"""
     save_only_latest_checkpoint: bool = True
     """delete older checkpoints after writing a new one"""
     load_dir: Path | None = None
@@ -149,7 +152,9 @@ class Trainer:
         self._stop_requested = False
         self._elapsed_offset = 0.0
         self._train_s = 0.0
+        self._train_cpu_s = 0.0  # CPU seconds of the training steps (all threads): a clock other processes barely move
         self._side_s = 0.0  # logging work inside a step (gradient shares), kept out of train_s
+        self._side_cpu_s = 0.0
         self._bad_in_a_row = 0
 
     @property
@@ -209,6 +214,7 @@ class Trainer:
             },
             "elapsed_s": self._elapsed(),
             "train_s": self._train_s,
+            "train_cpu_s": self._train_cpu_s,
         }
 
     def save_checkpoint(self, step: int) -> Path:
@@ -236,6 +242,7 @@ class Trainer:
         self.start_step = int(ckpt["step"])
         self._elapsed_offset = float(ckpt.get("elapsed_s", 0.0))
         self._train_s = float(ckpt.get("train_s", 0.0))
+        self._train_cpu_s = float(ckpt.get("train_cpu_s", 0.0))
 
     # ----------------------------------------------------------------------------------------------- helpers
     def _elapsed(self) -> float:
@@ -263,11 +270,15 @@ class Trainer:
         self._stop_requested = True
 
     def evaluate(self, step: int) -> dict[str, Any]:
-        result = self.pipeline.get_average_eval_image_metrics()
+        final = step == self.config.max_num_iterations
+        result = self.pipeline.get_average_eval_image_metrics(
+            extra_lpips_nets=self.config.final_lpips_nets if final else ()
+        )
         record = {"kind": "eval", "step": step, "elapsed_s": self._elapsed(), "train_s": self._train_s,
-                  "split": self.config.pipeline.datamanager.eval_split}
+                  "train_cpu_s": self._train_cpu_s, "split": self.config.pipeline.datamanager.eval_split}
         record.update({k: v for k, v in result.items() if k != "per_image"})
         record["per_image_psnr"] = [r["psnr"] for r in result["per_image"]]
+        record["per_image"] = result["per_image"]
         self.writer.write(record)
         self.last_eval = record
         return record
@@ -378,10 +389,11 @@ class Trainer:
                 self.evaluate(0)
             losses: dict[str, float] = {}
             while step < cfg.max_num_iterations and not self._stop_requested:
-                t_step = time.perf_counter()
+                t_step, t_step_cpu = time.perf_counter(), time.process_time()
                 losses = self.train_iteration(step)
                 self._train_s += time.perf_counter() - t_step - self._side_s
-                self._side_s = 0.0
+                self._train_cpu_s += time.process_time() - t_step_cpu - self._side_cpu_s
+                self._side_s = self._side_cpu_s = 0.0
                 step += 1
                 if losses and step % cfg.logging.steps_per_log == 0:
                     self._log_train(step, losses)
@@ -407,14 +419,16 @@ class Trainer:
         every = self.config.logging.steps_per_gradient_shares
         if every <= 0 or step % every != 0:
             return
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         record = {"kind": "gradient_shares", "step": step, "elapsed_s": self._elapsed(), "train_s": self._train_s,
                   "reference": "main_loss", **gradient_shares(loss_dict, image)}
         self.writer.write(record)
         self._side_s += time.perf_counter() - start
+        self._side_cpu_s += time.process_time() - start_cpu
 
     def _log_train(self, step: int, losses: dict[str, float]) -> None:
-        record: dict[str, Any] = {"kind": "train", "step": step, "elapsed_s": self._elapsed(), "train_s": self._train_s}
+        record: dict[str, Any] = {"kind": "train", "step": step, "elapsed_s": self._elapsed(), "train_s": self._train_s,
+                                  "train_cpu_s": self._train_cpu_s}
         record.update(losses)
         metrics = self.pipeline.get_train_metrics_dict(self._last_outputs, self._last_batch)
         record.update(metrics)

@@ -88,6 +88,39 @@ def test_metrics_schema_and_run_folder(tmp_path):
     assert times == sorted(times)
 
 
+def test_final_evaluation_adds_lpips_vgg_and_per_view_records(tmp_path):
+    from kc_splatfacto.lpips import lpips
+
+    config = tiny_demo_config("splatfacto", tmp_path, iterations=12)
+    config.eval_at_steps = (5,)
+    trainer = Trainer(config)
+    run_dir = trainer.train()
+    records = read_metrics(run_dir / "metrics.jsonl")
+    evals = {r["step"]: r for r in records if r["kind"] == "eval"}
+    assert sorted(evals) == [5, 12]
+    assert "lpips_vgg" not in evals[5]  # VGG only at the last step: ~10x AlexNet's time
+    final = evals[12]
+    views = final["per_image"]
+    assert len(views) == final["num_images"] == 12
+    assert [v["psnr"] for v in views] == final["per_image_psnr"]
+    if final["lpips"] is None:
+        pytest.skip(f"LPIPS weights not installed: {final['lpips_unavailable']}")
+    assert final["lpips_vgg"] == pytest.approx(sum(v["lpips_vgg"] for v in views) / 12, rel=1e-12)
+    assert final["lpips"] == pytest.approx(sum(v["lpips"] for v in views) / 12, rel=1e-12)
+    # view 3's VGG distance, recomputed from the final model's render and the ground truth
+    model, dataset = trainer.model, trainer.datamanager.eval_dataset
+    model.eval()
+    with torch.no_grad():
+        _, (pred, gt) = model.get_image_metrics(model.get_outputs(dataset.cameras[3]), dataset[3])
+        direct = float(lpips(pred.clamp(0, 1), gt.clamp(0, 1), net="vgg").mean())
+    assert views[3]["lpips_vgg"] == pytest.approx(direct, rel=1e-5)
+    assert views[3]["lpips_vgg"] != pytest.approx(views[3]["lpips"], rel=1e-2)  # another network, another value
+    # the CPU clock of the training steps: positive, growing, never above the wall clock times the thread count
+    cpu = [r["train_cpu_s"] for r in records if r["kind"] in ("train", "eval")]
+    assert cpu == sorted(cpu) and cpu[-1] > 0
+    assert final["train_cpu_s"] <= final["train_s"] * torch.get_num_threads() * 1.5 + 0.5
+
+
 def test_wavelet_targets_are_computed_once_per_training_image(tmp_path, monkeypatch):
     config = tiny_demo_config("kc-splatfacto", tmp_path, iterations=30)
     trainer = Trainer(config)
