@@ -10,12 +10,11 @@ Writes:
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 from pathlib import Path
 
-from kc_splatfacto.cli.main import add_run_arguments, existing_run_config, run_cli
+from kc_splatfacto.cli.main import ArgumentParser, add_run_arguments, existing_run_config, run_cli
 from kc_splatfacto.engine.run_guard import check_writable_folder
 from kc_splatfacto.errors import UserError
 
@@ -168,7 +167,7 @@ def entrypoint(argv: list[str] | None = None) -> int:
 
 
 def main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="kc-render", description="Render test views next to GT, and a camera-path video.")
+    parser = ArgumentParser(prog="kc-render", description="Render test views next to GT, and a camera-path video.")
     add_run_arguments(parser)
     parser.add_argument("--output-dir", type=Path, default=Path("renders"))
     parser.add_argument("--num-frames", type=int, default=60, help="frames of the path video")

@@ -5,7 +5,7 @@
 
     <scene>/images/          the registered photos (undistorted when the camera model has distortion)
     <scene>/sparse/0/        the PINHOLE model: cameras, images, points3D (.bin)
-    <scene>/colmap/          the working files: database.db and the raw (distorted) model in sparse/0
+    <scene>/colmap/          database.db and the mapper's own model (distorted, every point) in sparse/0
 
 and with ``num_train`` a SPARS3R-style sparse split as well (the ``spars3r`` dataparser's layout)::
 
@@ -168,11 +168,12 @@ def sparse_split(names: list[str], num_train: int, test_every: int = TEST_EVERY)
 
 @contextlib.contextmanager
 def colmap_log(verbose: bool) -> Iterator[None]:
-    """COLMAP's glog quiet (errors only) unless ``verbose``; the previous level restored afterwards."""
+    """COLMAP's glog quiet unless ``verbose`` (its errors too: the ones a user can act on become our one line);
+    the previous level restored afterwards."""
     import pycolmap
 
     previous = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = previous if verbose else max(previous, 2)
+    pycolmap.logging.minloglevel = previous if verbose else max(previous, 3)
     try:
         yield
     finally:
@@ -376,7 +377,7 @@ def write_scene(model, photos: Path, scene: Path, work: Path) -> str:
     distortion, else the photos copied as they are. Returns the written camera model's name."""
     import pycolmap
 
-    distorted_dir = work / "sparse" / "0"
+    distorted_dir = work / "to_undistort"
     shutil.rmtree(distorted_dir, ignore_errors=True)
     distorted_dir.mkdir(parents=True)
     model.write(distorted_dir)
@@ -388,6 +389,7 @@ def write_scene(model, photos: Path, scene: Path, work: Path) -> str:
             shutil.copy2(photos / name, scene / "images" / name)
         (scene / "sparse" / "0").mkdir(parents=True)
         model.write(scene / "sparse" / "0")
+        shutil.rmtree(distorted_dir, ignore_errors=True)
         return "/".join(sorted(models))
     undistorted = work / "undistorted"
     shutil.rmtree(undistorted, ignore_errors=True)
@@ -396,6 +398,7 @@ def write_scene(model, photos: Path, scene: Path, work: Path) -> str:
     (scene / "sparse").mkdir(parents=True)
     shutil.move(str(undistorted / "sparse"), str(scene / "sparse" / "0"))
     shutil.rmtree(undistorted, ignore_errors=True)
+    shutil.rmtree(distorted_dir, ignore_errors=True)
     return "PINHOLE"
 
 
@@ -462,6 +465,8 @@ def process_images(config: ProcessImagesConfig, progress: Callable[[str], None] 
         with stage(3, "mapping", "incremental mapping"):
             model, attempts = run_mapping(database, photos, work / "attempts", names, config, progress)
             shutil.rmtree(work / "attempts", ignore_errors=True)
+            (work / "sparse" / "0").mkdir(parents=True)
+            model.write(work / "sparse" / "0")  # the mapper's own model, every point, before any split
             unregistered = check_registered(model, names, photos)
             if unregistered:
                 progress(f"      {len(unregistered)} of {len(names)} photos did not register and are left out: "
