@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -157,19 +158,22 @@ def test_split_and_seed_points_from_train_views_only_with_poses_fixed(processed)
 
 
 @pytest.mark.slow
-def test_the_scene_trains_through_the_colmap_dataparser(processed, tmp_path):
+def test_the_scene_trains_through_the_colmap_dataparser_and_reads_as_spars3r(processed, tmp_path):
     from kc_splatfacto.data.colmap import ColmapDataParserConfig
     from kc_splatfacto.data.spars3r import Spars3rDataParserConfig
     from tests.training_utils import tiny_demo_config
 
-    _, out, _, _ = processed
-    for parser in (ColmapDataParserConfig(data=out, downscale_factor=4),
-                   Spars3rDataParserConfig(data=out, downscale_factor=4)):
-        config = tiny_demo_config("splatfacto", tmp_path / type(parser).__name__, iterations=3)
-        config.pipeline.datamanager.dataparser = parser
-        trainer = config.setup()
-        trainer.train()
-        assert trainer.model.num_points > 0
+    _, out, result, _ = processed
+    config = tiny_demo_config("splatfacto", tmp_path, iterations=3)
+    config.final_lpips_nets = ()
+    config.pipeline.datamanager.dataparser = ColmapDataParserConfig(data=out, downscale_factor=4)
+    trainer = config.setup()
+    trainer.train()
+    assert trainer.model.num_points > 0 and trainer.last_eval["step"] == 3
+    spars3r = Spars3rDataParserConfig(data=out, downscale_factor=4).setup()
+    train = spars3r.get_dataparser_outputs("train")
+    assert [Path(p).name for p in train.image_filenames] == result.train
+    assert len(train.points3d_xyz) == result.num_points
 
 
 def test_sparse_split_rules():
