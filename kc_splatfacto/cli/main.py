@@ -45,15 +45,21 @@ def run_cli(prog: str, main: Callable[[list[str]], int], argv: Sequence[str] | N
 #: how many close names a "did you mean" offers, and how close they must be (difflib's ratio)
 SUGGESTIONS = 3
 SUGGESTION_CUTOFF = 0.6
+SUGGESTION_SPREAD = 0.08
 
 
 def did_you_mean(word: str, valid) -> str:
-    """``"; did you mean X or Y?"`` for the names of ``valid`` closest to ``word``, or ``""`` when none is close."""
-    close = difflib.get_close_matches(word, sorted(set(valid)), n=SUGGESTIONS, cutoff=SUGGESTION_CUTOFF)
-    if not close and word.startswith("--"):  # a flag: also try the last dotted part (--kc-weigth -> ...kc-weight)
-        tails = {f"--{v.rsplit('.', 1)[-1].lstrip('-')}": v for v in valid if v.startswith("--")}
-        close = [tails[t] for t in difflib.get_close_matches(word, sorted(tails), n=SUGGESTIONS,
-                                                                  cutoff=SUGGESTION_CUTOFF)]
+    """``"; did you mean X or Y?"`` for the names of ``valid`` closest to ``word``, or ``""`` when none is close.
+
+    A flag is scored against the whole valid name and against its last dotted part (``--kc-weigth`` ->
+    ``--pipeline.model.kc-weight``); only names about as close as the best one are offered."""
+    scores = {}
+    for name in set(valid):
+        tail = f"--{name.rsplit('.', 1)[-1].lstrip('-')}" if name.startswith("--") else name
+        scores[name] = max(difflib.SequenceMatcher(None, word, name).ratio(),
+                           difflib.SequenceMatcher(None, word, tail).ratio())
+    ranked = sorted((s, n) for n, s in scores.items() if s >= SUGGESTION_CUTOFF)[::-1]
+    close = [n for s, n in ranked if s >= ranked[0][0] - SUGGESTION_SPREAD][:SUGGESTIONS] if ranked else []
     return f"; did you mean {' or '.join(close)}?" if close else ""
 
 
