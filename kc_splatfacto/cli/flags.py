@@ -43,8 +43,9 @@ SHORT_HELP_HIDDEN_PREFIXES = ("optimizers.", "pipeline.datamanager.data", "metho
 #: the short help's width and flag column
 SHORT_HELP_WIDTH = 110
 FLAG_COLUMN = 46
-#: tyro's box drawing characters, removed when a box becomes one line
-BOX_CHARACTERS = "╭╮╰╯│─"
+#: tyro's box drawing (rich's, or its ASCII fallback): the sides, and what its top, bottom and rules are made of
+BOX_SIDES = "│|"
+BOX_RULES = "╭╮╰╯─-+="
 
 
 @dataclass
@@ -142,23 +143,24 @@ def dataparser_flags() -> dict[str, list[Flag]]:
 
 
 def box_text(stderr: str) -> tuple[str, list[str]]:
-    """(title, paragraphs) of a tyro error box printed to ``stderr``; paragraphs are the box's sections as text."""
-    title, sections, current = "", [], []
+    """(title, sections) of a tyro error box printed to ``stderr``, drawn with box characters or (no UTF-8 terminal)
+    with ASCII; sections are the box's parts between its rules, each as one line of text."""
+    lines = []
     for raw in stderr.splitlines():
-        line = raw.strip()
-        if line.startswith("╭"):
-            title = line.strip(BOX_CHARACTERS + " ")
-            continue
-        if line.startswith("╰"):
-            break
-        inner = line.strip("│").strip()
-        if inner and set(inner) <= set(BOX_CHARACTERS):  # a separator
+        line = raw.strip().strip(BOX_SIDES).strip()
+        if line:
+            lines.append(line)
+    if not lines:
+        return "", []
+    title = lines[0].strip(BOX_RULES + " ")
+    sections, current = [], []
+    for line in lines[1:]:
+        if set(line) <= set(BOX_RULES + " "):
             sections.append(" ".join(current))
             current = []
-        elif inner:
-            current.append(inner)
-    if current:
-        sections.append(" ".join(current))
+        else:
+            current.append(line)
+    sections.append(" ".join(current))
     return title, [s for s in sections if s]
 
 
@@ -180,7 +182,9 @@ def one_line_error(stderr: str, valid_flags: list[str], subcommands: list[str], 
 @contextlib.contextmanager
 def tyro_errors_as_one_line(valid_flags: list[str], subcommands: list[str], prog: str):
     """Run a tyro parse; its error box (stderr, SystemExit 2) becomes a :class:`UserError` of one line. Help text and
-    a successful parse pass through untouched."""
+    a successful parse pass through untouched (anything else it printed to stderr is printed after it)."""
+    import sys
+
     captured = io.StringIO()
     try:
         with contextlib.redirect_stderr(captured):
@@ -188,13 +192,9 @@ def tyro_errors_as_one_line(valid_flags: list[str], subcommands: list[str], prog
     except SystemExit as exc:
         if exc.code not in (0, None):
             raise UserError(one_line_error(captured.getvalue(), valid_flags, subcommands, prog)) from None
+        sys.stderr.write(captured.getvalue())
         raise
-    finally:
-        text = captured.getvalue()
-        if text and not text.lstrip().startswith("╭"):
-            import sys
-
-            sys.stderr.write(text)  # warnings and anything else that is not an error box
+    sys.stderr.write(captured.getvalue())
 
 
 def _format_default(value: Any) -> str:
