@@ -74,7 +74,8 @@ class ProcessImagesConfig:
     """feature matching: exhaustive (every pair), sequential (neighbours in name order: video frames), spatial
     (GPS from EXIF); auto is exhaustive up to 100 photos, sequential beyond"""
     camera_model: CameraModel = "SIMPLE_RADIAL"
-    """COLMAP camera model shared by photos of one size and EXIF; models with distortion are undistorted to PINHOLE"""
+    """COLMAP camera model (one camera shared when all photos have one size); distorted ones are undistorted to
+    PINHOLE"""
     num_train: int | None = None
     """a SPARS3R-style sparse split: this many train views, every 8th view for test, seed points from train only"""
     max_image_size: int = 3200
@@ -180,8 +181,23 @@ def colmap_log(verbose: bool) -> Iterator[None]:
         pycolmap.logging.minloglevel = previous
 
 
+def photo_sizes(photos: Path, names: list[str]) -> set[tuple[int, int]]:
+    """The distinct (width, height) of the photos, from their headers."""
+    from PIL import Image, UnidentifiedImageError
+
+    sizes = set()
+    for name in names:
+        try:
+            with Image.open(photos / name) as image:
+                sizes.add(image.size)
+        except (OSError, UnidentifiedImageError) as exc:
+            raise ProcessDataError(f"photo {photos / name} is not an image that can be read ({exc}): remove it") from None
+    return sizes
+
+
 def extract_features(database: Path, photos: Path, names: list[str], config: ProcessImagesConfig) -> None:
-    """SIFT features of ``names`` into a fresh ``database``; one camera per photo size and EXIF (COLMAP's AUTO)."""
+    """SIFT features of ``names`` into a fresh ``database``: one shared camera when every photo has one size (a
+    single capture, as ns-process-data assumes), else COLMAP's AUTO (a camera per size and EXIF, or per photo)."""
     import pycolmap
 
     reader = pycolmap.ImageReaderOptions()
@@ -190,7 +206,8 @@ def extract_features(database: Path, photos: Path, names: list[str], config: Pro
     extraction.max_image_size = config.max_image_size
     # one extraction thread per core: SIFT's RAM is per thread, and the host has few cores
     extraction.num_threads = max(1, min(os.cpu_count() or 1, 4))
-    pycolmap.extract_features(database, photos, image_names=names, camera_mode=pycolmap.CameraMode.AUTO,
+    mode = pycolmap.CameraMode.SINGLE if len(photo_sizes(photos, names)) == 1 else pycolmap.CameraMode.AUTO
+    pycolmap.extract_features(database, photos, image_names=names, camera_mode=mode,
                               reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
 
 

@@ -118,6 +118,7 @@ def test_output_is_pinhole_with_the_images_it_names(processed):
     _, out, result, lines = processed
     model = pycolmap.Reconstruction(str(out / "sparse" / "0"))
     assert {c.model.name for c in model.cameras.values()} == {"PINHOLE"}  # SIMPLE_RADIAL undistorted
+    assert len(model.cameras) == 1  # photos of one size share one camera
     for image in model.images.values():
         camera = model.cameras[image.camera_id]
         from PIL import Image
