@@ -80,6 +80,9 @@ def parse_command_line(argv: list[str]):
     method = argv[0] if argv and not argv[0].startswith("-") else None
     if method is not None and method not in methods:
         raise UserError(f"unknown method '{method}'{did_you_mean(method, methods)} (kc-train --help lists them)")
+    if method is None and argv and argv[0] not in HELP_FLAGS:
+        raise UserError(f"the method comes first: kc-train METHOD --data SCENE [OPTIONS], METHOD one of "
+                        f"{', '.join(sorted(methods))}")
     parsers = dataparser_flags()
     before_dataparser = argv[1:next((i for i, a in enumerate(argv) if i > 0 and a in parsers), len(argv))]
     if method is not None and any(a in HELP_FLAGS for a in before_dataparser):

@@ -29,6 +29,7 @@ def run(*args: str) -> subprocess.CompletedProcess:
 
 @pytest.mark.parametrize("args, expected", [
     (("kc-train", "kc-splatfaco", "--data", "demo"), "unknown method 'kc-splatfaco'; did you mean kc-splatfacto?"),
+    (("kc-train", "--data", "demo"), "the method comes first: kc-train METHOD --data SCENE"),
     (("kc-train", "kc-splatfacto", "--max-num-iteration", "5"),
      "unrecognized option --max-num-iteration; did you mean --max-num-iterations?"),
     (("kc-train", "kc-splatfacto", "--kc-weigth", "1"),
