@@ -213,7 +213,7 @@ def test_spiral_circles_the_training_views_looking_at_the_scene(rendered, tmp_pa
     keys = loaded.train_dataset.cameras
     means = loaded.model.means.detach().double().numpy()
     path = spiral_camera_path(keys, means, 16)
-    centres = path.cameras.centers().double().numpy() if hasattr(path, "cameras") else path.centers().double().numpy()
+    centres = path.centers().double().numpy()
     key_centres = keys.centers().double().numpy()
     mean = key_centres.mean(axis=0)
     assert np.linalg.norm(centres - mean, axis=1).max() <= np.linalg.norm(key_centres - mean, axis=1).max() * 1.5
