@@ -14,13 +14,15 @@ from kc_splatfacto.cli import process_data as kc_process_data
 from kc_splatfacto.data.sfm import ProcessImagesConfig, process_images, sparse_split
 from tests.conftest import shared_scene
 
-#: fern is forward-facing with short baselines: what the recovered relative poses must reach against LLFF's.
-#: A translation direction is ill-conditioned for the closest pairs (0.7 units apart where the scene is ~30 deep), so
-#: its bound over all pairs is on the median and 90th percentile, and its max only over the longer half of baselines.
+#: fern is forward-facing with short baselines: what the recovered relative poses must reach against LLFF's
+#: (measured: rotation max 0.19 deg; direction median 0.6, 90th percentile 1.3, max 3.3 deg, 1.1 over the longer half
+#: of the baselines). A translation direction is ill-conditioned for the closest pairs (0.7 units apart where the
+#: scene is ~30 deep), hence the looser bound on its max over all pairs than over the longer half.
 MAX_ROTATION_ERROR_DEG = 1.0
-MEDIAN_TRANSLATION_DIRECTION_ERROR_DEG = 2.0
-P90_TRANSLATION_DIRECTION_ERROR_DEG = 5.0
-MAX_LONG_BASELINE_DIRECTION_ERROR_DEG = 5.0
+MEDIAN_TRANSLATION_DIRECTION_ERROR_DEG = 1.5
+P90_TRANSLATION_DIRECTION_ERROR_DEG = 3.0
+MAX_TRANSLATION_DIRECTION_ERROR_DEG = 6.0
+MAX_LONG_BASELINE_DIRECTION_ERROR_DEG = 3.0
 NOISE_NAME = "zz_noise.png"
 
 
@@ -100,6 +102,7 @@ def test_recovered_poses_match_llff_poses(processed):
     assert rotation.max() < MAX_ROTATION_ERROR_DEG
     assert np.median(direction) < MEDIAN_TRANSLATION_DIRECTION_ERROR_DEG
     assert np.percentile(direction, 90) < P90_TRANSLATION_DIRECTION_ERROR_DEG
+    assert direction.max() < MAX_TRANSLATION_DIRECTION_ERROR_DEG
     assert long_half.max() < MAX_LONG_BASELINE_DIRECTION_ERROR_DEG
 
 
