@@ -16,14 +16,13 @@ command), never approximated.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
 from pathlib import Path
 
 from kc_splatfacto.atomic import atomic_write_text
-from kc_splatfacto.cli.main import add_run_arguments, check_output_path, existing_run_config, run_cli
+from kc_splatfacto.cli.main import ArgumentParser, add_run_arguments, check_output_path, existing_run_config, run_cli
 from kc_splatfacto.errors import UserError
 
 
@@ -111,7 +110,7 @@ def entrypoint(argv: list[str] | None = None) -> int:
 
 
 def main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="kc-eval", description="Evaluate a trained run on its test split (ns-eval's JSON).")
+    parser = ArgumentParser(prog="kc-eval", description="Evaluate a trained run on its test split (ns-eval's JSON).")
     add_run_arguments(parser)
     parser.add_argument("--output-path", type=Path, default=Path("metrics.json"), help="where to write the JSON")
     parser.add_argument("--split", choices=("test", "train"), default="test")

@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
-from kc_splatfacto.cli.main import add_run_arguments, check_output_path, existing_run_config, run_cli
+from kc_splatfacto.cli.main import ArgumentParser, add_run_arguments, check_output_path, existing_run_config, run_cli
 from kc_splatfacto.errors import UserError
 
 
@@ -31,7 +30,7 @@ def entrypoint(argv: list[str] | None = None) -> int:
 
 
 def main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="kc-export", description="Export a run's Gaussians as a 3DGS PLY (SuperSplat, Inria viewers).")
+    parser = ArgumentParser(prog="kc-export", description="Export a run's Gaussians as a 3DGS PLY (SuperSplat, Inria viewers).")
     add_run_arguments(parser)
     parser.add_argument("--output-path", type=Path, default=Path("splat.ply"), help="the .ply file to write")
     args = parser.parse_args(argv)

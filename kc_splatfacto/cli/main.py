@@ -6,7 +6,9 @@
 from __future__ import annotations
 
 import argparse
+import difflib
 import os
+import re
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -38,6 +40,55 @@ def run_cli(prog: str, main: Callable[[list[str]], int], argv: Sequence[str] | N
             message = message[len(prefix):]
         print(f"{prog}: error: {message}", file=sys.stderr)
         return USER_ERROR_EXIT
+
+
+#: how many close names a "did you mean" offers, and how close they must be (difflib's ratio)
+SUGGESTIONS = 3
+SUGGESTION_CUTOFF = 0.6
+SUGGESTION_SPREAD = 0.08
+
+
+def did_you_mean(word: str, valid) -> str:
+    """``"; did you mean X or Y?"`` for the names of ``valid`` closest to ``word``, or ``""`` when none is close.
+
+    A flag is scored against the whole valid name and against its last dotted part (``--kc-weigth`` ->
+    ``--pipeline.model.kc-weight``); only names about as close as the best one are offered."""
+    scores = {}
+    for name in set(valid):
+        tail = f"--{name.rsplit('.', 1)[-1].lstrip('-')}" if name.startswith("--") else name
+        scores[name] = max(difflib.SequenceMatcher(None, word, name).ratio(),
+                           difflib.SequenceMatcher(None, word, tail).ratio())
+    ranked = sorted((s, n) for n, s in scores.items() if s >= SUGGESTION_CUTOFF)[::-1]
+    close = [n for s, n in ranked if s >= ranked[0][0] - SUGGESTION_SPREAD][:SUGGESTIONS] if ranked else []
+    return f"; did you mean {' or '.join(close)}?" if close else ""
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse whose errors are a :class:`UserError` of one line with the closest valid names (exit 2 through
+    :func:`run_cli`, no usage block): ``unrecognized arguments: --fsp; did you mean --fps?``."""
+
+    def error(self, message: str):
+        hint = ""
+        unknown = re.match(r"unrecognized arguments: (\S+)", message)
+        choice = re.match(r"argument [^:]+: invalid choice: '([^']*)'", message)
+        if unknown:
+            flags = [o for parser in _parser_tree(self) for action in parser._actions for o in action.option_strings
+                     if o.startswith("--")]
+            hint = did_you_mean(unknown.group(1).split("=", 1)[0], flags)
+        elif choice:
+            choices = [c for action in self._actions if action.choices for c in action.choices]
+            hint = did_you_mean(choice.group(1), [str(c) for c in choices])
+        raise UserError(f"{message}{hint} (see {self.prog} --help)")
+
+
+def _parser_tree(parser: argparse.ArgumentParser) -> list[argparse.ArgumentParser]:
+    """``parser`` and its subcommands' parsers (argparse reports a subcommand's unknown flag at the top)."""
+    found = [parser]
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                found.extend(_parser_tree(sub))
+    return found
 
 
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:

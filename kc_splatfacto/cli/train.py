@@ -65,10 +65,40 @@ def entrypoint(argv: list[str] | None = None) -> int:
     return run_cli("kc-train", main, argv)
 
 
+HELP_FLAGS = ("-h", "--help")
+HELP_ALL_FLAG = "--help-all"
+
+
+def parse_command_line(argv: list[str]):
+    """:func:`parse_config` as a person meets it: a misspelt method, flag or dataparser is one line naming the
+    closest valid names (a :class:`UserError`, exit 2); ``METHOD --help`` is one screen, ``--help-all`` tyro's."""
+    from kc_splatfacto.cli.flags import config_flags, dataparser_flags, short_help, tyro_errors_as_one_line
+    from kc_splatfacto.cli.main import did_you_mean
+    from kc_splatfacto.errors import UserError
+
+    methods = discover_methods()
+    method = argv[0] if argv and not argv[0].startswith("-") else None
+    if method is not None and method not in methods:
+        raise UserError(f"unknown method '{method}'{did_you_mean(method, methods)} (kc-train --help lists them)")
+    if method is None and argv and argv[0] not in HELP_FLAGS:
+        raise UserError(f"the method comes first: kc-train METHOD --data SCENE [OPTIONS], METHOD one of "
+                        f"{', '.join(sorted(methods))}")
+    parsers = dataparser_flags()
+    before_dataparser = argv[1:next((i for i, a in enumerate(argv) if i > 0 and a in parsers), len(argv))]
+    if method is not None and any(a in HELP_FLAGS for a in before_dataparser):
+        print(short_help(method, methods[method].description, methods[method].config))
+        raise SystemExit(0)
+    argv = ["--help" if a == HELP_ALL_FLAG else a for a in argv]
+    valid = [f.name for f in config_flags(methods[method].config)] if method else []
+    valid += [f.name for flags in parsers.values() for f in flags] + list(HELP_FLAGS)
+    with tyro_errors_as_one_line(valid, [*methods, *parsers], "kc-train"):
+        return parse_config(argv)
+
+
 def main(argv: list[str]) -> int:
     if not argv:
         argv = ["--help"]
-    config = parse_config(argv)
+    config = parse_command_line(argv)
 
     from kc_splatfacto.engine.trainer import TrainingDivergedError
     from kc_splatfacto.errors import UserError
