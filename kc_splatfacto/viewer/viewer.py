@@ -121,8 +121,9 @@ class Viewer(RecordSink):
     # ------------------------------------------------------------------------------------------------ the panel
     def _build_panel(self) -> None:
         gui = self.server.gui
-        gui.configure_theme(control_layout="collapsible", show_logo=False, show_share_button=False)
-        self._stats = gui.add_markdown("starting")
+        gui.configure_theme(show_logo=False, show_share_button=False)
+        self._stats = gui.add_markdown("starting" if self.training else
+                                       f"**run** `{self.run_dir}`  \n**Gaussians** {self.model.num_points:,}")
         if self.training:
             self._pause = gui.add_button("Pause training")
             self._pause.on_click(lambda _: self.toggle_pause())
@@ -154,19 +155,20 @@ class Viewer(RecordSink):
 
     def _add_training_frustums(self, dataset) -> None:
         self._frustums = []
+        self._frustum_scale = 0.1
         if self.train_cameras is None or len(self.train_cameras) == 0:
             return
         wxyz, position, fov = pose_of(self.train_cameras)
         centres = position
         extent = float(np.linalg.norm(centres - centres.mean(0), axis=1).max()) if len(centres) > 1 else 1.0
-        scale = 0.05 * max(extent, 1e-3)
+        scale = self._frustum_scale = 0.05 * max(extent, 1e-3)
         thumbnails = len(self.train_cameras) <= MAX_THUMBNAILS
         for i in range(len(self.train_cameras)):
             aspect = float(self.train_cameras.widths[i]) / float(self.train_cameras.heights[i])
             image = _thumbnail(dataset.image_uint8(i)) if thumbnails else None
             self._frustums.append(self.server.scene.add_camera_frustum(
                 f"/training_cameras/{i:04d}", fov=float(fov[i]), aspect=aspect, scale=scale, image=image,
-                wxyz=wxyz[i], position=position[i], color=(60, 90, 200)))
+                wxyz=wxyz[i], position=position[i], color=(60, 90, 200), thickness=2.0, thickness_units="screen"))
 
     def _set_frustums_visible(self, visible: bool) -> None:
         for frustum in self._frustums:
@@ -286,8 +288,8 @@ class Viewer(RecordSink):
         self.keyframes.append(camera)
         wxyz, position, fov = pose_of(camera)
         self.server.scene.add_camera_frustum(f"/camera_path/key_{len(self.keyframes) - 1:03d}", fov=float(fov[0]),
-                                             aspect=width / height, scale=0.1, wxyz=wxyz[0], position=position[0],
-                                             color=(220, 120, 20))
+                                             aspect=width / height, scale=self._frustum_scale, wxyz=wxyz[0], position=position[0],
+                                             color=(220, 120, 20), thickness=2.0, thickness_units="screen")
         self._path_status.content = f"{len(self.keyframes)} keyframes"
         return camera
 
