@@ -16,7 +16,6 @@ import kc_splatfacto  # noqa: E402,F401  (sets OMP_WAIT_POLICY before torch load
 import argparse  # noqa: E402
 import copy  # noqa: E402
 import math  # noqa: E402
-import shutil  # noqa: E402
 import statistics  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
@@ -26,27 +25,18 @@ from pathlib import Path  # noqa: E402
 
 SHARED_DATA = Path(os.environ.get("KC_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 TARGET_RATIO = 1.10
-CHROMIUM_ARGS = ("--headless=new", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-                 "--disable-dev-shm-usage", "--window-size=800,600")
 
 
 def browser():
-    """A selenium driver on Debian's chromium, or None with the reason printed."""
+    """The tests' niced headless chromium (tests/viewer/browser.py), or None with the reason printed."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from tests.viewer.browser import launch_headless_chromium
+
     try:
-        from selenium import webdriver
-        from selenium.webdriver.chrome.service import Service
-    except ImportError:
-        print("bench_viewer: selenium is not installed (pip install 'kc-splatfacto[browser-test]'); skipped")
+        return launch_headless_chromium()
+    except RuntimeError as exc:
+        print(f"bench_viewer: {exc}; skipped")
         return None
-    binary, driver = shutil.which("chromium"), shutil.which("chromedriver")
-    if binary is None or driver is None:
-        print("bench_viewer: no chromium/chromedriver (apt-get install chromium chromium-driver); skipped")
-        return None
-    options = webdriver.ChromeOptions()
-    options.binary_location = binary
-    for arg in CHROMIUM_ARGS:
-        options.add_argument(arg)
-    return webdriver.Chrome(options=options, service=Service(driver))
 
 
 def make_config(scene: Path, out: Path, downscale: int, steps: int):
