@@ -68,7 +68,7 @@ def entrypoint(argv: list[str] | None = None) -> int:
 #: boolean options that also work bare (``--viewer`` for ``--viewer.enabled True``), as nerfstudio users type them
 BARE_FLAGS = {"--viewer": "--viewer.enabled", "--logging.tensorboard": "--logging.tensorboard",
               "--logging.wandb": "--logging.wandb"}
-BOOL_VALUES = {"true", "false", "1", "0", "yes", "no"}
+BOOL_VALUES = ("True", "False")  # what tyro accepts
 
 
 def expand_bare_flags(argv: list[str]) -> list[str]:
@@ -78,7 +78,7 @@ def expand_bare_flags(argv: list[str]) -> list[str]:
         if token in BARE_FLAGS:
             following = argv[i + 1] if i + 1 < len(argv) else None
             expanded.append(BARE_FLAGS[token])
-            if following is None or following.lower() not in BOOL_VALUES:
+            if following not in BOOL_VALUES:
                 expanded.append("True")
         else:
             expanded.append(token)

@@ -249,10 +249,13 @@ class Viewer(RecordSink):
         now = time.perf_counter()
         if now - self._stats_at[0] >= STATS_EVERY_S:
             self._update_stats(step, trainer.model.num_points, trainer.config.max_num_iterations, now)
-        while self.paused and not trainer._stop_requested:
-            self.render_pending()
-            time.sleep(0.05)
-            self._t0 += 0.05  # a pause is no training time: it does not earn render budget
+        if self.paused:  # held here, between two steps; renders go on, outside the training budget
+            pause_start, render_s = time.perf_counter(), self.render_s
+            while self.paused and not trainer._stop_requested:
+                self.render_pending()
+                time.sleep(0.05)
+            self._t0 += time.perf_counter() - pause_start
+            self.render_s = render_s
         if self.render_s <= self.config.render_share * (time.perf_counter() - self._t0):
             self.render_pending(refresh_s=REFRESH_S)
 

@@ -10,7 +10,7 @@ from kc_splatfacto.cli.train import expand_bare_flags, parse_config
 @pytest.mark.parametrize("argv, viewer, tensorboard, wandb", [
     (["splatfacto", "--data", "demo", "--viewer"], True, False, False),
     (["splatfacto", "--viewer", "--logging.tensorboard", "--data", "demo"], True, True, False),
-    (["splatfacto", "--data", "demo", "--viewer", "False", "--logging.wandb", "true"], False, False, True),
+    (["splatfacto", "--data", "demo", "--viewer", "False", "--logging.wandb", "True"], False, False, True),
     (["splatfacto", "--data", "demo", "--viewer.enabled", "True", "--viewer.port", "7010"], True, False, False),
 ])
 def test_bare_flags_parse_to_the_config(argv, viewer, tensorboard, wandb):
