@@ -108,8 +108,8 @@ class Viewer(RecordSink):
         self.render_s = 0.0
         self.paused = False
         self.step = 0
-        self._t0 = time.perf_counter()
-        self._stats_at = (0.0, 0, 0.0)  # (time, step, ...) of the last statistics update
+        self._t0: float | None = None  # the render budget's clock: from the first training step on
+        self._stats_at = (0.0, 0)  # (time, step) of the last statistics update
         self._last_eval: dict[str, Any] | None = None
         self._last_losses: dict[str, float] = {}
         self.keyframes: list[Cameras] = []
@@ -247,6 +247,8 @@ class Viewer(RecordSink):
         self.step = step
         self._last_losses = trainer.last_losses or self._last_losses
         now = time.perf_counter()
+        if self._t0 is None:
+            self._t0, self.render_s = now, 0.0
         if now - self._stats_at[0] >= STATS_EVERY_S:
             self._update_stats(step, trainer.model.num_points, trainer.config.max_num_iterations, now)
         if self.paused:  # held here, between two steps; renders go on, outside the training budget
@@ -260,9 +262,9 @@ class Viewer(RecordSink):
             self.render_pending(refresh_s=REFRESH_S)
 
     def _update_stats(self, step: int, gaussians: int, total: int, now: float) -> None:
-        last_time, last_step, _ = self._stats_at
+        last_time, last_step = self._stats_at
         rate = (step - last_step) / (now - last_time) if last_time and now > last_time else float("nan")
-        self._stats_at = (now, step, rate)
+        self._stats_at = (now, step)
         lines = [f"**step** {step:,} / {total:,}" + (" (paused)" if self.paused else ""),
                  f"**Gaussians** {gaussians:,}"]
         if math.isfinite(rate):

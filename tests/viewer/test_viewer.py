@@ -185,3 +185,11 @@ def test_missing_viser_is_one_line_with_the_install_command(monkeypatch):
     monkeypatch.setitem(sys.modules, "viser", None)
     with pytest.raises(UserError, match=r"pip install 'kc-splatfacto\[viewer\]'"):
         import_viser()
+
+
+def test_kc_viewer_missing_config_is_one_line(tmp_path, capsys):
+    from kc_splatfacto.cli.viewer import entrypoint
+
+    assert entrypoint(["--load-config", str(tmp_path / "nope" / "config.yml")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("kc-viewer: error:") and "nope" in err
