@@ -7,6 +7,7 @@ import json
 import math
 import struct
 import sys
+import time
 
 import pytest
 
@@ -92,19 +93,32 @@ def test_wandb_offline_run_holds_the_metrics_log(tmp_path):
     run_dir = Trainer(config).train()
     files = list((run_dir / "wandb").glob("offline-run-*/run-*.wandb"))
     assert len(files) == 1
-    history = {}
-    for raw in _wandb_records(files[0]):
-        record = wandb_internal_pb2.Record()
-        record.ParseFromString(raw)
-        if record.WhichOneof("record_type") == "history":
-            items = {(i.key or "/".join(i.nested_key)): json.loads(i.value_json) for i in record.history.item}
-            history.setdefault(items["_step"], {}).update(items)
+
+    def read() -> tuple[dict, bool]:
+        history, finished = {}, False
+        for raw in _wandb_records(files[0]):
+            record = wandb_internal_pb2.Record()
+            record.ParseFromString(raw)
+            kind = record.WhichOneof("record_type")
+            finished |= kind == "exit"
+            if kind == "history":
+                items = {(i.key or "/".join(i.nested_key)): json.loads(i.value_json) for i in record.history.item}
+                history.setdefault(items["_step"], {}).update(items)
+        return history, finished
+
+    # wandb's service process may still be writing the file when finish() has returned: wait for its exit record
+    deadline = time.monotonic() + 60
+    history, finished = read()
+    while not finished and time.monotonic() < deadline:
+        time.sleep(0.5)
+        history, finished = read()
+    assert finished, "the offline run's log has no exit record"
     train = [r for r in read_metrics(run_dir / "metrics.jsonl") if r["kind"] == "train"]
     assert train
     for record in train:
         assert math.isclose(history[record["step"]]["train/loss"], record["loss"], rel_tol=1e-9)
         assert history[record["step"]]["train/gaussian_count"] == record["gaussian_count"]
-    assert "eval/psnr" in history[20] and "eval/view_0" in history[20]
+    assert "eval/psnr" in history[20] and history[20]["eval/view_0/_type"] == "image-file"
 
 
 @pytest.mark.parametrize("flag, module", [("--logging.tensorboard", "torch.utils.tensorboard"),

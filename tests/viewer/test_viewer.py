@@ -123,7 +123,7 @@ def test_live_viewer_streams_training_to_the_browser(tmp_path):
     statistics panel follows the steps, pause holds the step count, and the render budget is kept."""
     from kc_splatfacto.cli.train import attach_viewer
 
-    config = tiny_demo_config("splatfacto", tmp_path, iterations=400, steps_scale=0.05)
+    config = tiny_demo_config("splatfacto", tmp_path, iterations=200, steps_scale=0.05)
     config.viewer.enabled, config.viewer.port = True, 0
     trainer = config.setup()
     viewer = attach_viewer(trainer)
@@ -132,7 +132,7 @@ def test_live_viewer_streams_training_to_the_browser(tmp_path):
 
     def pause_once(step: int) -> None:
         step_times[step] = time.perf_counter()
-        if step == 200 and not paused_at:
+        if step == 100 and not paused_at:
             viewer.toggle_pause()
             paused_at["step"] = step
             threading.Timer(2.0, viewer.toggle_pause).start()  # what a second click does
@@ -145,11 +145,11 @@ def test_live_viewer_streams_training_to_the_browser(tmp_path):
         trainer.train()
         wall = time.perf_counter() - start
         assert viewer.frames_sent >= 2, viewer.frames_sent
-        assert viewer.step == 400 and "**step**" in viewer._stats.content and "Gaussians" in viewer._stats.content
-        assert step_times[201] - step_times[200] >= 1.9  # the pause held the step after the click
+        assert viewer.step == 200 and "**step**" in viewer._stats.content and "Gaussians" in viewer._stats.content
+        assert step_times[101] - step_times[100] >= 1.9  # the pause held the step after the click
         # renders are charged to the budget: at most render_share of the time, plus the one frame that crossed it
         assert viewer.render_s <= config.viewer.render_share * wall + 0.5, (viewer.render_s, wall)
-        assert paused_at == {"step": 200}
+        assert paused_at == {"step": 100}
     finally:
         driver.quit()
         viewer.stop()
