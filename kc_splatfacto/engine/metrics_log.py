@@ -1,4 +1,4 @@
-"""Training records: ``metrics.jsonl`` (one JSON object a line) and a one-line progress bar.
+"""Training records: ``metrics.jsonl`` (one JSON object a line) and the progress bar.
 
 Record schema (shared with kc-eval / kc-bench): every record has ``step`` (int), ``elapsed_s`` (wall clock since the
 start of training, resumed runs continue the count), ``train_s`` (time in training steps only, evaluation and
@@ -20,6 +20,7 @@ import math
 import sys
 import time
 from pathlib import Path
+from collections.abc import Sequence
 from typing import Any, TextIO
 
 
@@ -36,19 +37,27 @@ def _jsonable(value: Any) -> Any:
 
 
 class MetricsWriter:
-    """Appends records to ``metrics.jsonl``, flushed line by line (a crash loses at most the line being written)."""
+    """Appends records to ``metrics.jsonl``, flushed line by line (a crash loses at most the line being written),
+    then hands each to the ``sinks`` (tensorboard, wandb, a viewer: objects with ``write(record)`` and ``close()``)
+    as the JSON holds it."""
 
-    def __init__(self, path: Path):
+    def __init__(self, path: Path, sinks: Sequence[Any] = ()):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = self.path.open("a")
+        self.sinks = list(sinks)
 
     def write(self, record: dict[str, Any]) -> None:
-        self._file.write(json.dumps(_jsonable(record), allow_nan=False) + "\n")
+        record = _jsonable(record)
+        self._file.write(json.dumps(record, allow_nan=False) + "\n")
         self._file.flush()
+        for sink in self.sinks:
+            sink.write(record)
 
     def close(self) -> None:
         self._file.close()
+        for sink in self.sinks:
+            sink.close()
 
 
 def read_metrics(path: str | Path) -> list[dict[str, Any]]:
@@ -68,40 +77,83 @@ def read_metrics(path: str | Path) -> list[dict[str, Any]]:
     return records
 
 
+#: steps whose time the ETA leaves out: the first steps compile the numba kernels (seconds each, then milliseconds)
+ETA_WARMUP_STEPS = 5
+
+
+def format_duration(seconds: float) -> str:
+    """``1:02:03`` / ``2:03`` for finite ``seconds``, ``?`` otherwise."""
+    if not math.isfinite(seconds):
+        return "?"
+    seconds = int(round(seconds))
+    hours, rest = divmod(seconds, 3600)
+    return f"{hours}:{rest // 60:02d}:{rest % 60:02d}" if hours else f"{rest // 60}:{rest % 60:02d}"
+
+
 class ProgressBar:
-    """``[#####.....] 120/300 40% | 5.1 it/s | ETA 0:35 | loss 0.0812 | 12,034 GS`` on one rewritten stderr line."""
+    """Training progress on ``stream`` (stderr): a tqdm bar when it is a terminal, otherwise one plain line every
+    ``line_every`` steps (a log file or CI gets no carriage-return redraws).
 
-    WIDTH = 24
+    The rate and ETA are measured from the ``ETA_WARMUP_STEPS``-th step of this session on, so the compilation of
+    the first steps does not inflate the estimate; before then the ETA is ``?``.
+    """
 
-    def __init__(self, total: int, start: int = 0, enabled: bool = True, stream: TextIO | None = None):
+    def __init__(self, total: int, start: int = 0, enabled: bool = True, stream: TextIO | None = None,
+                 line_every: int = 100, interactive: bool | None = None):
         self.total, self.start = total, start
         self.enabled = enabled
         self.stream = stream or sys.stderr
-        self._t0 = time.perf_counter()
-        self._last_draw = 0.0
+        self.line_every = max(int(line_every), 1)
+        if interactive is None:
+            isatty = getattr(self.stream, "isatty", None)
+            interactive = bool(isatty and isatty())
+        self.interactive = interactive
+        self._warm: tuple[int, float] | None = None  # (step, time) once the warm-up steps are done
+        self._last_line_step = start
+        self._bar = None
+        if enabled and interactive:
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=total, initial=start, file=self.stream, dynamic_ncols=True, mininterval=0.2,
+                             bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}{postfix}]")
+
+    def rate_and_eta(self, step: int, now: float | None = None) -> tuple[float, float]:
+        """(steps per second, seconds left) measured since the warm-up steps; NaN and inf before then."""
+        now = time.perf_counter() if now is None else now
+        if self._warm is None:
+            if step - self.start >= ETA_WARMUP_STEPS:
+                self._warm = (step, now)
+            return math.nan, math.inf
+        steps, seconds = step - self._warm[0], now - self._warm[1]
+        if steps <= 0 or seconds <= 0:
+            return math.nan, math.inf
+        rate = steps / seconds
+        return rate, (self.total - step) / rate
+
+    def describe(self, step: int, loss: float | None, gaussian_count: int) -> str:
+        rate, eta = self.rate_and_eta(step)
+        rate_text = f"{rate:.2f} it/s" if math.isfinite(rate) else "? it/s"
+        loss_text = f"{loss:.4f}" if loss is not None and math.isfinite(loss) else "nan"
+        return f"{rate_text}, ETA {format_duration(eta)}, loss {loss_text}, {gaussian_count:,} GS"
 
     def update(self, step: int, loss: float | None, gaussian_count: int, force: bool = False) -> None:
         if not self.enabled:
             return
-        now = time.perf_counter()
-        if not force and now - self._last_draw < 0.2:
+        text = self.describe(step, loss, gaussian_count)
+        if self._bar is not None:
+            self._bar.set_postfix_str(text, refresh=False)
+            self._bar.update(step - self._bar.n)
+            if force:
+                self._bar.refresh()
             return
-        self._last_draw = now
-        done = step - self.start
-        rate = done / max(now - self._t0, 1e-9)
-        remaining = (self.total - step) / rate if rate > 0 else float("inf")
-        frac = step / max(self.total, 1)
-        filled = int(self.WIDTH * frac)
-        eta = f"{int(remaining // 60)}:{int(remaining % 60):02d}" if math.isfinite(remaining) else "?"
-        loss_text = f"{loss:.4f}" if loss is not None and math.isfinite(loss) else "nan"
-        line = (
-            f"\r[{'#' * filled}{'.' * (self.WIDTH - filled)}] {step}/{self.total} {100 * frac:3.0f}% | "
-            f"{rate:.1f} it/s | ETA {eta} | loss {loss_text} | {gaussian_count:,} GS"
-        )
-        self.stream.write(line)
-        self.stream.flush()
+        if step == self._last_line_step:  # the closing update of a step already reported
+            return
+        if force or step - self._last_line_step >= self.line_every or step == self.total:
+            self._last_line_step = step
+            self.stream.write(f"step {step}/{self.total} ({100 * step / max(self.total, 1):.0f}%): {text}\n")
+            self.stream.flush()
 
     def close(self) -> None:
-        if self.enabled:
-            self.stream.write("\n")
-            self.stream.flush()
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None

@@ -30,10 +30,12 @@ from typing import Any
 import numpy as np
 import torch
 
+from kc_splatfacto.engine.callbacks import RecordSink, TrainingCallback, TrainingCallbackLocation, run_callbacks
 from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, save_checkpoint
-from kc_splatfacto.engine.config import LoggingConfig, MachineConfig, save_config
+from kc_splatfacto.engine.config import LoggingConfig, MachineConfig, ViewerConfig, save_config
 from kc_splatfacto.engine.evaluation import FINAL_LPIPS_NETS
 from kc_splatfacto.engine.gradient_shares import gradient_shares
+from kc_splatfacto.engine.loggers import check_backends, logging_sinks
 from kc_splatfacto.engine.metrics_log import MetricsWriter, ProgressBar
 from kc_splatfacto.engine.optimizers import OptimizersConfig
 from kc_splatfacto.engine.pipeline import Pipeline, PipelineConfig
@@ -93,6 +95,7 @@ class TrainerConfig:
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
     optimizers: OptimizersConfig = field(default_factory=OptimizersConfig)
     logging: LoggingConfig = field(default_factory=LoggingConfig)
+    viewer: ViewerConfig = field(default_factory=ViewerConfig)
 
     def resolve_aliases(self) -> None:
         """Fold ``--data`` into the data manager config."""
@@ -149,6 +152,7 @@ class Trainer:
         self.phase_times = {name: 0.0 for name in PHASES}
         self.phase_steps = 0
         self.last_eval: dict[str, Any] | None = None
+        self.last_losses: dict[str, float] = {}  # the last step's loss terms (for callbacks)
         self._stop_requested = False
         self._elapsed_offset = 0.0
         self._train_s = 0.0
@@ -156,6 +160,13 @@ class Trainer:
         self._side_s = 0.0  # logging work inside a step (gradient shares), kept out of train_s
         self._side_cpu_s = 0.0
         self._bad_in_a_row = 0
+        self.callbacks: list[TrainingCallback] = []
+        self.record_sinks: list[RecordSink] = []
+
+    def add_callbacks(self, callbacks: list[TrainingCallback] = (), sinks: list[RecordSink] = ()) -> None:
+        """Register what watches the run (a viewer, a logger): see :mod:`kc_splatfacto.engine.callbacks`."""
+        self.callbacks.extend(callbacks)
+        self.record_sinks.extend(sinks)
 
     @property
     def model(self):
@@ -169,6 +180,7 @@ class Trainer:
     def setup(self) -> None:
         cfg = self.config
         plan = plan_run(cfg, map_location=self.device)  # bad settings and foreign resumes refused before data loads
+        check_backends(cfg.logging)
         cfg.machine.seed_everything()
         self.pipeline = cfg.pipeline.setup(device=self.device, seed=cfg.machine.seed)
         announce_seed_points(self.datamanager, cfg.pipeline.model)
@@ -379,16 +391,20 @@ class Trainer:
             self.setup()
         cfg = self.config
         # (no warnings.catch_warnings around the loop: mutating filters re-enables once-only warnings every step)
-        self.writer = MetricsWriter(self.run_dir / "metrics.jsonl")
+        recorded = recorded_config(cfg, self.datamanager.dataparser_config) if cfg.logging.wandb else None
+        sinks = logging_sinks(cfg.logging, self.run_dir, self.pipeline, recorded)
+        self.writer = MetricsWriter(self.run_dir / "metrics.jsonl", sinks=[*sinks, *self.record_sinks])
         self._t0 = time.perf_counter()
         previous_handlers = install_stop_handlers(self._on_sigint)  # SIGINT and SIGTERM: save and return
-        bar = ProgressBar(cfg.max_num_iterations, self.start_step, enabled=cfg.logging.progress_bar)
+        bar = ProgressBar(cfg.max_num_iterations, self.start_step, enabled=cfg.logging.progress_bar,
+                          line_every=cfg.logging.steps_per_progress_line)
         step = self.start_step
         try:
             if step == 0 and 0 in cfg.eval_at_steps:
                 self.evaluate(0)
             losses: dict[str, float] = {}
             while step < cfg.max_num_iterations and not self._stop_requested:
+                run_callbacks(self.callbacks, step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
                 t_step, t_step_cpu = time.perf_counter(), time.process_time()
                 losses = self.train_iteration(step)
                 self._train_s += time.perf_counter() - t_step - self._side_s
@@ -402,6 +418,8 @@ class Trainer:
                     self.evaluate(step)
                 if step % cfg.steps_per_save == 0 or step == cfg.max_num_iterations:
                     self.save_checkpoint(step)
+                self.last_losses = losses
+                run_callbacks(self.callbacks, step, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
             if self._stop_requested and step < cfg.max_num_iterations:
                 self.interrupted = True
                 path = self.save_checkpoint(step)
@@ -411,6 +429,7 @@ class Trainer:
             bar.update(step, losses.get("loss") if losses else None, self.model.num_points, force=True)
             bar.close()
         finally:
+            bar.close()
             restore_handlers(previous_handlers)
             self.writer.close()
         return self.run_dir

@@ -1,0 +1,114 @@
+"""Between the browser's camera and the project's: pure functions, no server.
+
+viser's camera is a camera-to-world pose in OpenCV axes (``wxyz`` rotation, ``position``), a vertical field of view
+in radians and the canvas size in pixels; the project's :class:`~kc_splatfacto.data.outputs.Cameras` are
+world-to-camera ``viewmats`` in the same axes and pinhole ``Ks``. Both live in the run's normalized world, so no
+scale or axis change is needed between them. nerfstudio's camera-path JSON holds OpenGL-axes camera-to-world
+matrices (x right, y up, z back) and vertical fields of view in degrees.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import torch
+
+from kc_splatfacto.data.outputs import Cameras
+from kc_splatfacto.render.projection import quat_to_rotmat, rotmat_to_quat
+
+#: OpenCV camera axes -> OpenGL camera axes (nerfstudio's camera convention): flip y and z
+OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
+#: the format tag of a camera-path JSON written here (nerfstudio's render panel writes the same fields)
+CAMERA_PATH_TYPE = "perspective"
+
+
+def render_size(width: int, height: int, max_pixels: int) -> tuple[int, int]:
+    """The canvas size ``width`` x ``height`` scaled down (aspect kept, at least 1x1) to at most ``max_pixels``."""
+    width, height = max(int(width), 1), max(int(height), 1)
+    scale = min(1.0, math.sqrt(max_pixels / (width * height)))
+    return max(int(width * scale), 1), max(int(height * scale), 1)
+
+
+def pinhole_K(fov_y: float, width: int, height: int) -> torch.Tensor:
+    """[3, 3] intrinsics of a centred pinhole with square pixels and vertical field of view ``fov_y`` (radians)."""
+    focal = 0.5 * height / math.tan(0.5 * fov_y)
+    return torch.tensor([[focal, 0.0, 0.5 * width], [0.0, focal, 0.5 * height], [0.0, 0.0, 1.0]], dtype=torch.float32)
+
+
+def camera_from_pose(wxyz: Any, position: Any, fov_y: float, width: int, height: int) -> Cameras:
+    """One camera (batch of 1) from a viser pose: ``wxyz`` [4] camera-to-world rotation, ``position`` [3]."""
+    c2w = torch.eye(4, dtype=torch.float64)
+    c2w[:3, :3] = quat_to_rotmat(torch.as_tensor(np.asarray(wxyz, dtype=np.float64))[None])[0]
+    c2w[:3, 3] = torch.as_tensor(np.asarray(position, dtype=np.float64))
+    return Cameras(viewmats=torch.linalg.inv(c2w)[None].to(torch.float32), Ks=pinhole_K(fov_y, width, height)[None],
+                   widths=torch.tensor([width]), heights=torch.tensor([height]))
+
+
+def pose_of(cameras: Cameras) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(wxyz [N, 4], position [N, 3], vertical fov [N] in radians) of ``cameras``: what viser's camera and frustum
+    handles take."""
+    c2w = torch.linalg.inv(cameras.viewmats.to(torch.float64))
+    wxyz = rotmat_to_quat(c2w[:, :3, :3]).numpy()
+    fov = 2.0 * np.arctan(0.5 * cameras.heights.double().numpy() / cameras.Ks[:, 1, 1].double().numpy())
+    return wxyz, c2w[:, :3, 3].numpy(), fov
+
+
+def world_up(cameras: Cameras) -> np.ndarray:
+    """[3] unit vector: the mean 'up' of the cameras (OpenCV's -y axis), the orbit controls' up direction."""
+    c2w = torch.linalg.inv(cameras.viewmats.to(torch.float64))
+    up = -c2w[:, :3, 1].mean(dim=0).numpy()
+    norm = np.linalg.norm(up)
+    return up / norm if norm > 0 else np.array([0.0, 0.0, 1.0])
+
+
+def splat_arrays(model) -> dict[str, np.ndarray]:
+    """What the PLY export holds, as viser's ``add_gaussian_splats`` takes it: ``centers`` [N, 3], ``covariances``
+    [N, 3, 3] (R diag(s^2) R^T), ``rgbs`` [N, 3] (the view-independent colour), ``opacities`` [N, 1]."""
+    from kc_splatfacto.model.gaussians import SH_C0
+
+    with torch.no_grad():
+        rotations = quat_to_rotmat(model.quats.detach().double())
+        scales = torch.exp(model.scales.detach().double())
+        covariances = rotations @ torch.diag_embed(scales**2) @ rotations.transpose(-1, -2)
+        dc = model.features_dc.detach().double()
+        rgbs = (SH_C0 * dc + 0.5) if model.config.sh_degree > 0 else torch.sigmoid(dc)
+        return {
+            "centers": model.means.detach().cpu().numpy().astype(np.float32),
+            "covariances": covariances.cpu().numpy().astype(np.float32),
+            "rgbs": rgbs.clamp(0, 1).cpu().numpy().astype(np.float32),
+            "opacities": torch.sigmoid(model.opacities.detach()).reshape(-1, 1).cpu().numpy().astype(np.float32),
+        }
+
+
+def camera_path_json(keyframes: Cameras, fps: float, seconds: float, loop: bool = False) -> dict[str, Any]:
+    """nerfstudio's camera-path JSON (its viewer's export, ``ns-render camera-path``'s input) through ``keyframes``:
+    ``camera_path`` holds ``round(fps * seconds)`` cameras interpolated through the keys (slerped orientations,
+    lerped centres and intrinsics), each ``camera_to_world`` (OpenGL axes, row-major 16 numbers), ``fov`` (vertical,
+    degrees) and ``aspect``; ``keyframes`` the keys themselves (``matrix`` in the same form); ``render_width`` /
+    ``render_height`` the keys' image size."""
+    from kc_splatfacto.analysis.camera_path import interpolate_camera_path
+
+    if len(keyframes) == 0:
+        raise ValueError("camera_path_json: no keyframes")
+    num_frames = max(int(round(fps * seconds)), 1)
+    path = interpolate_camera_path(keyframes, num_frames, loop=loop)
+
+    def entries(cameras: Cameras, matrix_key: str) -> list[dict[str, Any]]:
+        c2w = torch.linalg.inv(cameras.viewmats.to(torch.float64)).numpy() @ OPENCV_TO_OPENGL
+        _, _, fov = pose_of(cameras)
+        aspect = (cameras.widths.double() / cameras.heights.double()).numpy()
+        return [{matrix_key: c2w[i].reshape(-1).tolist(), "fov": math.degrees(float(fov[i])), "aspect": float(aspect[i])}
+                for i in range(len(cameras))]
+
+    return {
+        "camera_type": CAMERA_PATH_TYPE,
+        "render_width": int(keyframes.widths[0]),
+        "render_height": int(keyframes.heights[0]),
+        "fps": float(fps),
+        "seconds": float(seconds),
+        "is_cycle": bool(loop),
+        "keyframes": entries(keyframes, "matrix"),
+        "camera_path": entries(path, "camera_to_world"),
+    }
