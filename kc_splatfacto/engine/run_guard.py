@@ -29,6 +29,7 @@ from kc_splatfacto.engine.checkpoints import (
     load_checkpoint,
     remove_orphan_temp_files,
 )
+from kc_splatfacto.engine.validation import validate_config
 from kc_splatfacto.errors import ResumeError, UserError
 
 OVERRIDE_FLAG = "--resume-from-other-run True"
@@ -52,12 +53,14 @@ class RunPlan:
 
 
 def check_settings(config: Any) -> None:
-    """Settings that are wrong whatever the scene: refused before anything is loaded or written."""
+    """Settings that are wrong whatever the scene (every field's type and range, engine/validation.py): refused
+    before anything is loaded or written."""
     iterations = config.max_num_iterations
     if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
         raise UserError(f"--max-num-iterations must be at least 1, got {iterations!r}")
     if not isinstance(config.steps_per_save, int) or config.steps_per_save < 1:
         raise UserError(f"--steps-per-save must be at least 1, got {config.steps_per_save!r}")
+    validate_config(config)
     check_writable_folder(Path(config.output_dir), "--output-dir")
 
 
