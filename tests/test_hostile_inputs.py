@@ -23,6 +23,8 @@ import pytest
 from kc_splatfacto.cli import eval as kc_eval
 from kc_splatfacto.cli import export as kc_export
 from kc_splatfacto.cli import train as kc_train
+from kc_splatfacto.engine.config import save_config
+from kc_splatfacto.engine.config_file import read_config_file
 from tests.hostile_scenes import colmap_scene, transforms_scene, tree_digest
 
 TOOLS = {"kc-train": kc_train.entrypoint, "kc-eval": kc_eval.entrypoint, "kc-export": kc_export.entrypoint}
@@ -437,8 +439,11 @@ def prepare(case: Case, tmp_path: Path, templates, finished_run) -> Path:
         template_root, run_dir = finished_run
         shutil.copytree(template_root / "scene", root / "scene")
         shutil.copytree(run_dir, root / "run")
-        config = root / "run" / "config.yml"
-        config.write_text(config.read_text().replace(str(template_root / "scene"), str(root / "scene")))
+        config_path = root / "run" / "config.yml"
+        config = read_config_file(config_path)  # the copy trains on the case's copy of the scene
+        config.pipeline.datamanager.data = None
+        config.pipeline.datamanager.dataparser.data = root / "scene"
+        save_config(config, config_path)
         for old in (root / "run" / "nerfstudio_models").iterdir():
             assert old.name == "step-000000002.ckpt"
     else:
@@ -446,7 +451,7 @@ def prepare(case: Case, tmp_path: Path, templates, finished_run) -> Path:
     return root
 
 
-@pytest.mark.parametrize("case", CASES, ids=[f"{c.category}-{c.id}" for c in CASES])
+@pytest.mark.parametrize("case", CASES, ids=[f"cat{c.category}-{c.id}" for c in CASES])
 def test_hostile_input(case, tmp_path, templates, finished_run, capsys, monkeypatch):
     root = prepare(case, tmp_path, templates, finished_run)
     case.edit(root)

@@ -7,6 +7,7 @@ resize by ``w_new / w`` scales ``fx`` and ``cx`` by exactly that ratio.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -16,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from kc_splatfacto.atomic import atomic_write_bytes, atomic_write_text
-from kc_splatfacto.data.base import DataParserError, default_cache_dir
+from kc_splatfacto.data.base import CACHE_ENV, DataParserError, default_cache_dir
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".exr")
 # Folder under the user cache for derived images of scenes whose own folder is read-only.
@@ -182,9 +183,18 @@ def derived_is_fresh(target: Path, source: Path, derived_folder: Path) -> bool:
 
 
 def write_derived(target: Path, image: np.ndarray, source: Path, derived_folder: Path) -> None:
-    """Write a derived image and record its source's size and mtime (see :func:`derived_is_fresh`)."""
-    write_image_atomic(target, image)
-    atomic_write_text(_record_path(target, derived_folder), json.dumps(_source_stamp(source)))
+    """Write a derived image and record its source's size and mtime (see :func:`derived_is_fresh`); a full disk is
+    a :class:`DataParserError` naming the file (the atomic write leaves no partial file)."""
+    try:
+        write_image_atomic(target, image)
+        atomic_write_text(_record_path(target, derived_folder), json.dumps(_source_stamp(source)))
+    except OSError as exc:
+        if exc.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES, errno.EPERM):
+            raise
+        raise DataParserError(
+            f"could not write the derived image {target} ({exc.strerror or exc}): free space there, or set "
+            f"cache_dir (or ${CACHE_ENV}) to a folder with room; nothing partial was left"
+        ) from exc
 
 
 def resized_size(width: int, height: int, factor: int) -> tuple[int, int]:

@@ -25,6 +25,7 @@ from typing import Any
 from kc_splatfacto.atomic import atomic_write_text
 from kc_splatfacto.engine.checkpoints import (
     CHECKPOINT_DIR,
+    check_checkpoint_fits,
     find_checkpoint,
     load_checkpoint,
     remove_orphan_temp_files,
@@ -101,7 +102,7 @@ def scene_of(config: Any, parser: Any = None) -> str | None:
         parser = _dataparser(config)
     if str(data) == "demo" and type(parser).__name__.startswith(("Demo", "Auto", "NoneType")):
         return "demo"
-    return str(Path(data).expanduser().absolute())
+    return str(Path(data).expanduser().resolve())  # resolved: a scene reached through a symlink is the same scene
 
 
 def differences(stored: Any, current: Any, parser_settings: bool = False) -> list[str]:
@@ -123,6 +124,60 @@ def differences(stored: Any, current: Any, parser_settings: bool = False) -> lis
                    if k != "data" and stored_fields.get(k) != v]
         if changed:
             found.append(f"dataparser settings ({', '.join(changed)})")
+    return found
+
+
+#: fields a resume may change: how long, how often and where it logs, evaluates and saves, on which device; every
+#: other field (model, optimizers, dataparser settings, seed) must equal the stored run's, or config.yml would lie
+#: about the steps already taken
+RESUMABLE_FIELDS = (
+    "method_name", "experiment_name", "output_dir", "timestamp", "data", "max_num_iterations", "steps_per_save",
+    "steps_per_eval_all_images", "eval_at_steps", "final_lpips_nets", "save_only_latest_checkpoint", "load_dir",
+    "load_step", "resume_from_other_run", "max_consecutive_bad_steps", "machine.device", "logging",
+    "pipeline.datamanager.data", "pipeline.datamanager.dataparser", "pipeline.datamanager.eval_split",
+    "pipeline.model.rasterization_backend",
+)
+#: dataparser fields that say where, not what: compared as the scene (data) or not at all (cache_dir)
+PARSER_LOCATION_FIELDS = ("data", "cache_dir", "demo_cache_dir")
+
+
+def _leaves(value: Any, prefix: str = "") -> dict[str, Any]:
+    """{dotted name: value} of every non-dataclass field under ``value``."""
+    if not dataclasses.is_dataclass(value) or isinstance(value, type):
+        return {prefix.rstrip("."): value}
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(value):
+        out.update(_leaves(getattr(value, f.name), f"{prefix}{f.name}."))
+    return out
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    return a == b
+
+
+def setting_differences(stored: Any, current: Any) -> list[str]:
+    """The settings (dotted names, stored vs current) in which ``current`` would train differently from ``stored``:
+    every field but :data:`RESUMABLE_FIELDS`, and the resolved dataparser's settings (its scene is compared by
+    :func:`differences`)."""
+    found = []
+    stored_leaves, current_leaves = _leaves(stored), _leaves(current)
+    for name in sorted(set(stored_leaves) | set(current_leaves)):
+        if any(name == f or name.startswith(f + ".") for f in RESUMABLE_FIELDS):
+            continue
+        a, b = stored_leaves.get(name, "(absent)"), current_leaves.get(name, "(absent)")
+        if not _same(a, b):
+            found.append(f"{name} {a!r} vs {b!r}")
+    stored_parser, current_parser = _dataparser(stored), _dataparser(current)
+    if type(stored_parser) is type(current_parser) and dataclasses.is_dataclass(stored_parser):
+        a_fields, b_fields = _leaves(stored_parser), _leaves(current_parser)
+        for name in sorted(set(a_fields) | set(b_fields)):
+            if name in PARSER_LOCATION_FIELDS:
+                continue
+            a, b = a_fields.get(name, "(absent)"), b_fields.get(name, "(absent)")
+            if not _same(a, b):
+                found.append(f"pipeline.datamanager.dataparser.{name} {a!r} vs {b!r}")
     return found
 
 
@@ -173,7 +228,20 @@ def plan_run(config: Any, map_location: Any = "cpu") -> RunPlan:
     else:
         from kc_splatfacto.engine.config_file import read_config_file
 
-        problems = differences(read_config_file(stored_path), config)
+        stored = read_config_file(stored_path)
+        problems = differences(stored, config)
+        if not problems:
+            changed = setting_differences(stored, config)
+            if changed and getattr(config, "resume_from_other_run", False):
+                return RunPlan(run_dir=None, checkpoint=checkpoint, checkpoint_path=path)
+            if changed:
+                raise ResumeError(
+                    f"--load-dir {config.load_dir}: this command would train that run on with other settings than "
+                    f"its {stored_path} ({'; '.join(changed)}), and config.yml would then describe its first "
+                    f"{step} steps wrongly. Resume with the run's settings, or pass {OVERRIDE_FLAG} to continue "
+                    "from its checkpoint with these settings in a new run folder"
+                )
+    check_checkpoint_fits(checkpoint, config, path, same_method=not getattr(config, "resume_from_other_run", False))
     if problems:
         if not getattr(config, "resume_from_other_run", False):
             raise ResumeError(
@@ -217,6 +285,7 @@ __all__ = [
     "check_settings",
     "check_writable_folder",
     "differences",
+    "setting_differences",
     "plan_run",
     "store_absolute_scene_path",
     "trim_metrics",

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, save_checkpoint
+from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, RUN_IDENTITY_KEY, run_identity, save_checkpoint
 from kc_splatfacto.engine.config import LoggingConfig, MachineConfig, save_config
 from kc_splatfacto.engine.evaluation import FINAL_LPIPS_NETS
 from kc_splatfacto.engine.gradient_shares import gradient_shares
@@ -203,6 +203,7 @@ class Trainer:
     def _checkpoint_payload(self, step: int) -> dict[str, Any]:
         return {
             "step": step,
+            RUN_IDENTITY_KEY: run_identity(self.config),
             **self.pipeline.state_dict(),  # model, strategy_state, datamanager (top-level: the format stays readable)
             "optimizers": {k: opt.state_dict() for k, opt in self.optimizers.items()},
             "schedulers": {k: s.state_dict() for k, s in self.schedulers.items()},
