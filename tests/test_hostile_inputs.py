@@ -344,8 +344,8 @@ CASES = [
     Case("truncated-points3d-bin", 3, "colmap_bin", train(), 2, "points3D.bin",
          edit=truncate("scene/sparse/0/points3D.bin", 0.7)),
     # 4. images and lists
-    Case("float-tiff-negative", 4, "transforms", train(), 2, "0000.tif", edit=write_float_tiff(lambda im: im - 100.0)),
-    Case("float-tiff-above-255", 4, "transforms", train(), 2, "0000.tif", edit=write_float_tiff(lambda im: im * 4.0)),
+    Case("float-tiff-negative", 4, "transforms", train(), 2, ".tif is a float image", edit=write_float_tiff(lambda im: im - 100.0)),
+    Case("float-tiff-above-255", 4, "transforms", train(), 2, ".tif is a float image", edit=write_float_tiff(lambda im: im * 4.0)),
     Case("decompression-bomb", 4, "transforms", train(), 2, "0003.png",
          edit=replace_image("0003.png", png_bytes(30000, 30000))),
     Case("too-small-after-downscale", 4, "colmap", train(parser=("colmap", "--downscale-factor", "8")), 2,

@@ -256,6 +256,29 @@ def plan_run(config: Any, map_location: Any = "cpu") -> RunPlan:
     return RunPlan(run_dir=run_dir, checkpoint=checkpoint, checkpoint_path=path, trimmed_records=trimmed)
 
 
+def check_training_image_sizes(datamanager: Any, model_config: Any) -> None:
+    """Every training image must stay large enough for SSIM's window at the coarsest training resolution
+    (1/2^num_downscales of the parsed size): refused before the first step, naming both settings that shrink it."""
+    from kc_splatfacto.metrics import SSIM_WINDOW
+
+    need = SSIM_WINDOW // 2 + 1
+    cameras = datamanager.train_dataset.cameras
+    divisor = 2 ** int(model_config.num_downscales)
+    sizes = list(zip(cameras.widths.tolist(), cameras.heights.tolist()))
+    index = min(range(len(sizes)), key=lambda i: min(sizes[i]))
+    width, height = sizes[index]
+    if min(width // divisor, height // divisor) >= need:
+        return
+    factor = getattr(datamanager.dataparser_config, "downscale_factor", 1)
+    name = datamanager.train_dataset.image_filenames[index]
+    raise UserError(
+        f"training image {name} is {width}x{height} after the dataparser's downscale_factor {factor}, and "
+        f"{width // divisor}x{height // divisor} at the first training resolution (1/{divisor}, "
+        f"pipeline.model.num_downscales {model_config.num_downscales}): SSIM needs at least {need} pixels a side. "
+        "Lower --downscale-factor or --pipeline.model.num-downscales"
+    )
+
+
 def store_absolute_scene_path(config: Any) -> None:
     """Make the scene paths saved in ``config.yml`` absolute, so kc-eval / kc-render work from any folder."""
     datamanager = config.pipeline.datamanager
@@ -283,6 +306,7 @@ __all__ = [
     "RunPlan",
     "announce_seed_points",
     "check_settings",
+    "check_training_image_sizes",
     "check_writable_folder",
     "differences",
     "setting_differences",

@@ -37,7 +37,12 @@ from kc_splatfacto.engine.gradient_shares import gradient_shares
 from kc_splatfacto.engine.metrics_log import MetricsWriter, ProgressBar
 from kc_splatfacto.engine.optimizers import OptimizersConfig
 from kc_splatfacto.engine.pipeline import Pipeline, PipelineConfig
-from kc_splatfacto.engine.run_guard import announce_seed_points, plan_run, store_absolute_scene_path
+from kc_splatfacto.engine.run_guard import (
+    announce_seed_points,
+    check_training_image_sizes,
+    plan_run,
+    store_absolute_scene_path,
+)
 from kc_splatfacto.engine.signals import install_stop_handlers, restore_handlers
 from kc_splatfacto.render.errors import NonFiniteInputError
 
@@ -171,6 +176,7 @@ class Trainer:
         plan = plan_run(cfg, map_location=self.device)  # bad settings and foreign resumes refused before data loads
         cfg.machine.seed_everything()
         self.pipeline = cfg.pipeline.setup(device=self.device, seed=cfg.machine.seed)
+        check_training_image_sizes(self.datamanager, cfg.pipeline.model)
         announce_seed_points(self.datamanager, cfg.pipeline.model)
         self.model.train()
         self._build_optimizers()
