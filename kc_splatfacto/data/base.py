@@ -367,11 +367,20 @@ def read_text_file(path: Path) -> str:
         ) from None
 
 
-def _invisible(name: str) -> list[str]:
-    """Code points of ``name`` that do not show when printed (format and control characters)."""
+def _is_invisible(char: str) -> bool:
     import unicodedata
 
-    return [f"U+{ord(c):04X}" for c in name if unicodedata.category(c) in ("Cf", "Cc")]
+    return unicodedata.category(char) in ("Cf", "Cc")  # format (zero-width, BOM, bidi) and control characters
+
+
+def _invisible(name: str) -> list[str]:
+    """Code points of ``name`` that do not show when printed."""
+    return [f"U+{ord(c):04X}" for c in name if _is_invisible(c)]
+
+
+def _escaped(name: str) -> str:
+    """``name`` with its invisible characters written as ``\\uXXXX``."""
+    return "".join(f"\\u{ord(c):04x}" if _is_invisible(c) else c for c in name)
 
 
 def read_split_list(path: Path) -> list[str]:
@@ -389,7 +398,7 @@ def read_split_list(path: Path) -> list[str]:
         if line and not line.startswith("#"):
             hidden = _invisible(line)
             if hidden:
-                shown = line.encode("ascii", "backslashreplace").decode()
+                shown = _escaped(line)
                 raise DataParserError(
                     f"{path}:{number}: the name '{shown}' holds invisible character(s) {', '.join(hidden)}: "
                     "retype that line"
