@@ -233,6 +233,7 @@ def plan_run(config: Any, map_location: Any = "cpu") -> RunPlan:
         if not problems:
             changed = setting_differences(stored, config)
             if changed and getattr(config, "resume_from_other_run", False):
+                check_checkpoint_fits(checkpoint, config, path, same_method=False)
                 return RunPlan(run_dir=None, checkpoint=checkpoint, checkpoint_path=path)
             if changed:
                 raise ResumeError(
@@ -241,7 +242,6 @@ def plan_run(config: Any, map_location: Any = "cpu") -> RunPlan:
                     f"{step} steps wrongly. Resume with the run's settings, or pass {OVERRIDE_FLAG} to continue "
                     "from its checkpoint with these settings in a new run folder"
                 )
-    check_checkpoint_fits(checkpoint, config, path, same_method=not getattr(config, "resume_from_other_run", False))
     if problems:
         if not getattr(config, "resume_from_other_run", False):
             raise ResumeError(
@@ -249,7 +249,9 @@ def plan_run(config: Any, map_location: Any = "cpu") -> RunPlan:
                 f"overwrite its files. Pass {OVERRIDE_FLAG} to start a new run folder from that checkpoint "
                 "(the other run is left untouched)"
             )
+        check_checkpoint_fits(checkpoint, config, path, same_method=False)
         return RunPlan(run_dir=None, checkpoint=checkpoint, checkpoint_path=path)
+    check_checkpoint_fits(checkpoint, config, path)  # the run's config.yml and its checkpoint must agree
     check_writable_folder(run_dir, "the run folder")
     remove_orphan_temp_files(run_dir / CHECKPOINT_DIR)
     trimmed = trim_metrics(run_dir / "metrics.jsonl", step)
