@@ -9,7 +9,10 @@ sent could run arbitrary code. :class:`ConfigLoader` is PyYAML's ``SafeLoader`` 
 - ``!!python/object/apply:pathlib.PosixPath`` (and the other pathlib classes): ``Path(*parts)``;
 - ``!!python/tuple``.
 
-Every other tag is a :class:`~kc_splatfacto.errors.ConfigFileError` naming the file and line.
+Every other tag is a :class:`~kc_splatfacto.errors.ConfigFileError` naming the file and line, and so is a key the
+config class has no field for (with a did-you-mean). The rebuilt config then goes through
+:func:`kc_splatfacto.engine.validation.validate_config`: a value of the wrong type or out of range names the file and
+the dotted field.
 """
 
 from __future__ import annotations

@@ -1,12 +1,17 @@
 """Checks that run before a training run loads any data, and the resume rules.
 
 :func:`plan_run` refuses settings that would silently do nothing or the wrong thing, before the (slow) scene load:
+- any config field of the wrong type or out of range (:mod:`kc_splatfacto.engine.validation`);
 - ``max_num_iterations`` below 1 (a run folder with no checkpoint);
 - an output folder that cannot be written;
 - a resume (``load_dir``) whose checkpoint is past ``max_num_iterations`` (it would train nothing);
 - a resume of another scene's, method's or dataparser's run: it would overwrite that run's ``config.yml`` and
   ``dataparser_transforms.json`` and delete its checkpoints. ``resume_from_other_run`` allows it, into a *new* run
-  folder; the other run's files are never touched.
+  folder; the other run's files are never touched;
+- a resume of the same run with other settings (:func:`setting_differences`, e.g. another downscale factor or SH
+  degree): config.yml would describe the steps already taken wrongly. ``resume_from_other_run`` continues from the
+  checkpoint with the new settings in a new run folder;
+- a checkpoint that does not fit the config (another method or SH degree: ``checkpoints.check_checkpoint_fits``).
 
 A resume of the same run also removes checkpoint temp files a hard kill left behind and drops ``metrics.jsonl``
 records written after the checkpoint (they will be written again), so the log has no duplicate or backwards steps.
