@@ -46,7 +46,8 @@ POINT3D_ID_UNSET = 2**64 - 1  # the binary format's invalid id (uint64 max)
 
 def _unsupported_model(name: str, supported: tuple[str, ...], where: str) -> DataParserError:
     return DataParserError(
-        f"{where}: camera model {name} is not supported: supported models are {', '.join(supported)} (re-run COLMAP "
+        f"{where}: the camera uses the COLMAP camera model {name}, which is not supported: supported models are "
+        f"{', '.join(supported)} (re-run COLMAP "
         "with one of them, or undistort the images with `colmap image_undistorter` first)"
     )
 
