@@ -7,7 +7,7 @@ pycolmap's C++ reader reports a bad model in its own terms ("Rig with ID 7 does 
 
 - cameras: a known model with its number of parameters, a positive size and focal length, finite values;
 - images: the pose line's fields (id, quaternion, translation, camera id, name), a camera that exists, the 2D-points
-  line after each pose line (possibly empty), X Y POINT3D_ID triples naming existing points;
+  line after each pose line (possibly empty) of X Y POINT3D_ID triples;
 - points3D: id, X Y Z, R G B in 0..255, error, then (IMAGE_ID POINT2D_IDX) pairs naming registered images.
 
 Non-finite point coordinates are left to :func:`kc_splatfacto.data.colmap.read_colmap_model`, which drops those
@@ -308,11 +308,10 @@ def check_model_files(model_dir: Path, supported: tuple[str, ...]) -> None:
 
     cameras, images, points = pick("cameras"), pick("images"), pick("points3D")
     camera_ids = (check_cameras_bin if cameras.suffix == ".bin" else check_cameras_txt)(cameras, supported)
-    points_txt_ids = point_ids_txt(points) if points.suffix == ".txt" and points.is_file() else None
     if images.suffix == ".bin":
         image_ids = check_images_bin(images, camera_ids)
-    else:
-        image_ids = check_images_txt(images, camera_ids, points_txt_ids)
+    else:  # 2D points may name 3D points a model no longer holds (an emptied points3D: random initial Gaussians)
+        image_ids = check_images_txt(images, camera_ids, None)
     if points.is_file():
         if points.suffix == ".bin":
             check_points3d_bin(points, image_ids)
