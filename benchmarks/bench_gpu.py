@@ -41,6 +41,7 @@ def timed_method(method, args, out, run_dir, n_gaussians):
     config.load_dir = run_dir / "nerfstudio_models"
     config.load_step = args.warmup_steps
     config.pipeline.model.max_num_gaussians = n_gaussians
+    config.resume_from_other_run = True  # other settings (and methods) than the warm-up run's: a new run folder
     trainer = Trainer(config)
     trainer.setup()
     trainer.config.max_num_iterations = args.warmup_steps + 10  # GT caches, kernels, allocator warm

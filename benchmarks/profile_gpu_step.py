@@ -40,6 +40,7 @@ def main() -> int:
             config = gpu_config(method, args, out, args.warmup_steps + 10)
             config.load_dir = run_dir / "nerfstudio_models"
             config.load_step = args.warmup_steps
+            config.resume_from_other_run = True  # kc-splatfacto from splatfacto's warm-up: a new run folder
             trainer = Trainer(config)
             trainer.train()  # 10 steps: caches and kernels warm
             trainer.config.max_num_iterations = args.warmup_steps + 10 + args.steps

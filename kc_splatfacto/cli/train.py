@@ -119,9 +119,11 @@ def main(argv: list[str]) -> int:
     config = parse_command_line(expand_bare_flags(argv))
 
     from kc_splatfacto.engine.trainer import TrainingDivergedError
+    from kc_splatfacto.engine.validation import validate_config
     from kc_splatfacto.errors import UserError
     from kc_splatfacto.model.strategy import NoGaussiansLeftError
 
+    validate_config(config)  # every value, with its dotted name, before the device, the scene or the run folder
     try:
         config.machine.resolve_device()
     except RuntimeError as exc:  # e.g. --machine.device cuda on a machine without CUDA: the flag, not a bug

@@ -330,17 +330,79 @@ def read_dataparser_transforms(path: str | Path) -> PoseNormalization:
     return PoseNormalization(transform=transform, scale=scale)
 
 
+#: byte-order marks and the encodings they announce (UTF-32 before UTF-16: its LE mark starts with UTF-16's)
+BYTE_ORDER_MARKS = (
+    (b"\xef\xbb\xbf", "utf-8-sig"),
+    (b"\xff\xfe\x00\x00", "utf-32"),
+    (b"\x00\x00\xfe\xff", "utf-32"),
+    (b"\xff\xfe", "utf-16"),
+    (b"\xfe\xff", "utf-16"),
+)
+
+
+def read_text_file(path: Path) -> str:
+    """The text of a scene's text file: UTF-8, or UTF-8/16/32 announced by a byte-order mark (the mark dropped);
+    anything else is a :class:`DataParserError` naming the file and the reason. Line ends (LF, CRLF) are left to
+    ``splitlines``."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise DataParserError(f"{path} cannot be read ({exc.strerror or exc})") from exc
+    for mark, encoding in BYTE_ORDER_MARKS:
+        if data.startswith(mark):
+            try:
+                return data.decode(encoding)
+            except UnicodeDecodeError as exc:
+                raise DataParserError(f"{path} starts with a {encoding} byte-order mark but is not {encoding}: {exc}")
+    if b"\x00" in data:
+        raise DataParserError(
+            f"{path} holds NUL bytes: it looks like UTF-16 or UTF-32 without a byte-order mark; save it as UTF-8"
+        )
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise DataParserError(
+            f"{path} is not UTF-8 (byte 0x{data[exc.start]:02x} at offset {exc.start}): save it as UTF-8"
+        ) from None
+
+
+def _is_invisible(char: str) -> bool:
+    import unicodedata
+
+    return unicodedata.category(char) in ("Cf", "Cc")  # format (zero-width, BOM, bidi) and control characters
+
+
+def _invisible(name: str) -> list[str]:
+    """Code points of ``name`` that do not show when printed."""
+    return [f"U+{ord(c):04X}" for c in name if _is_invisible(c)]
+
+
+def _escaped(name: str) -> str:
+    """``name`` with its invisible characters written as ``\\uXXXX``."""
+    return "".join(f"\\u{ord(c):04x}" if _is_invisible(c) else c for c in name)
+
+
 def read_split_list(path: Path) -> list[str]:
-    """Basenames from a split list file, one a line (blank lines and ``#`` comments ignored).
+    """Basenames from a split list file, one a line (blank lines and ``#`` comments ignored); decoded by
+    :func:`read_text_file` (UTF-8, or a byte-order mark's encoding).
 
     A name listed twice is an error naming the file, the name and its lines: training on it twice would silently
-    weight that view double.
+    weight that view double. A name holding an invisible character (a zero-width space, a stray byte-order mark) is
+    an error showing it escaped: printed as is it would look like a valid name.
     """
     names: list[str] = []
     seen: dict[str, int] = {}
-    for number, line in enumerate(path.read_text().splitlines(), start=1):
+    for number, line in enumerate(read_text_file(path).splitlines(), start=1):
         line = line.strip()
         if line and not line.startswith("#"):
+            hidden = _invisible(line)
+            if hidden:
+                shown = _escaped(line)
+                raise DataParserError(
+                    f"{path}:{number}: the name '{shown}' holds invisible character(s) {', '.join(hidden)}: "
+                    "retype that line"
+                )
             if line in seen:
                 raise DataParserError(
                     f"{path}: '{line}' is listed twice (lines {seen[line]} and {number}): remove the duplicate"

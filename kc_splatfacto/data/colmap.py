@@ -46,6 +46,7 @@ from kc_splatfacto.data.images import (
     read_image,
     write_derived,
 )
+from kc_splatfacto.data.colmap_files import check_model_files
 from kc_splatfacto.data.outputs import DataparserOutputs
 from kc_splatfacto.data.paths import inside_folder
 
@@ -192,6 +193,7 @@ def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
             f"{model_dir} has cameras and images but no points3D.bin or points3D.txt: copy the model's points3D "
             "file there (COLMAP writes it with the model; an empty one gives random initial Gaussians)"
         )
+    check_model_files(model_dir, SUPPORTED_CAMERA_MODELS)  # file, line and reason, before pycolmap's C++ reads it
     dropped_points: list[int] = []
     try:
         reconstruction = pycolmap.Reconstruction(str(model_dir))
@@ -207,6 +209,8 @@ def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
             raise DataParserError(f"could not read the COLMAP model in {model_dir}: {exc}") from exc
         reconstruction = _read_without_point_lines(pycolmap, model_dir, dropped_points)
     cameras = {cid: _camera_from_pycolmap(cid, cam, model_dir) for cid, cam in reconstruction.cameras.items()}
+    for cid, camera in cameras.items():
+        check_principal_point(camera, f"camera {cid} in {model_file(model_dir, 'cameras')}")
     images = []
     for _, image in sorted(reconstruction.images.items()):
         pose = image.cam_from_world() if callable(image.cam_from_world) else image.cam_from_world
@@ -242,7 +246,52 @@ def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
             f"{model_dir / 'points3D.txt'}: {len(dropped_points)} 3D points with NaN/inf coordinates were left out "
             f"(lines {shown})"
         )
+    if len(xyz) and images:
+        warn_points_behind_cameras(xyz, [image.world_to_camera for image in images], model_file(model_dir, "points3D"))
     return ColmapModel(model_dir, cameras, images, xyz, rgb)
+
+
+#: a principal point farther than this many image sizes outside the image cannot be a real camera's
+PRINCIPAL_POINT_FAR = 1.0
+
+
+def check_principal_point(camera: ColmapCamera, where: str) -> None:
+    """An error when the principal point lies more than an image size outside the image, a warning when it lies
+    outside it at all (a crop can do that; a wrong unit or a swapped cx/cy usually did)."""
+    w, h = camera.width, camera.height
+    inside = 0.0 <= camera.cx <= w and 0.0 <= camera.cy <= h
+    near = (-PRINCIPAL_POINT_FAR * w <= camera.cx <= (1 + PRINCIPAL_POINT_FAR) * w
+            and -PRINCIPAL_POINT_FAR * h <= camera.cy <= (1 + PRINCIPAL_POINT_FAR) * h)
+    text = f"{where}: the principal point ({camera.cx:g}, {camera.cy:g}) is outside the {w}x{h} image"
+    if not near:
+        raise DataParserError(
+            f"{text}, by more than the image's size: cx, cy are in pixels of that image (check the unit, a swapped "
+            "cx/cy, or a size that does not belong to this camera)"
+        )
+    if not inside:
+        warnings.warn(f"{text}: the views are rendered as given; check cx, cy if the images were not cropped")
+
+
+#: warn when more than this share of the seed points lies behind every camera
+BEHIND_SHARE_WARNING = 0.5
+
+
+def warn_points_behind_cameras(xyz: np.ndarray, world_to_cameras: list[np.ndarray], source: Path) -> int:
+    """Warn with counts when most seed points [M, 3] are behind every camera (their depth z <= 0 in each): points and
+    poses in different conventions. Returns how many are behind every camera."""
+    w2c = np.stack(world_to_cameras)  # [N, 4, 4]
+    behind_all = np.ones(len(xyz), bool)
+    for start in range(0, len(w2c), 64):  # [M, chunk] depths, bounded memory
+        block = w2c[start:start + 64]
+        depth = xyz @ block[:, 2, :3].T + block[:, 2, 3]
+        behind_all &= ~(depth > 0).any(axis=1)
+    count = int(behind_all.sum())
+    if count > BEHIND_SHARE_WARNING * len(xyz):
+        warnings.warn(
+            f"{source}: {count} of {len(xyz)} seed points are behind every camera: the points and the poses may be in "
+            "different conventions (the Gaussians starting there will not be seen)"
+        )
+    return count
 
 
 #: A quaternion whose norm is this close to 1 is rounding (text models print ~16 digits): normalized silently.

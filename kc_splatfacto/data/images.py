@@ -7,6 +7,7 @@ resize by ``w_new / w`` scales ``fx`` and ``cx`` by exactly that ratio.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -16,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from kc_splatfacto.atomic import atomic_write_bytes, atomic_write_text
-from kc_splatfacto.data.base import DataParserError, default_cache_dir
+from kc_splatfacto.data.base import CACHE_ENV, DataParserError, default_cache_dir
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".exr")
 # Folder under the user cache for derived images of scenes whose own folder is read-only.
@@ -28,13 +29,14 @@ def read_image(path: str | Path) -> np.ndarray:
 
     Returns:
         [H, W, 3] or [H, W, 4] uint8 (16-bit files are rounded to 8 bits; float files must hold finite values in
-        [0, 1] and are quantized).
+        [0, 1] or [0, 255], their range decides the scale, and are quantized).
     """
     import cv2
 
     path = Path(path)
     if not path.is_file():
         raise DataParserError(f"image file {path} does not exist: check the scene's image folder")
+    header_size(path)  # a decompression bomb is refused before OpenCV allocates it
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None or image.size == 0:
         raise DataParserError(f"image file {path} is corrupt or not an image OpenCV can read: re-export or remove it")
@@ -50,6 +52,42 @@ def read_image(path: str | Path) -> np.ndarray:
     return to_uint8(image, path)
 
 
+def _bomb_error(path: Path, exc: Exception) -> DataParserError:
+    return DataParserError(
+        f"image file {path} is refused as a decompression bomb ({exc}): an image that large cannot be a training "
+        "view; downscale it first (or check that the file is what it claims to be)"
+    )
+
+
+def header_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) from the file's header through Pillow (None for formats Pillow does not know); a
+    :class:`DataParserError` for a decompression bomb (Pillow's limit)."""
+    import warnings
+
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # the error threshold is what counts
+            with Image.open(path) as handle:
+                return int(handle.size[0]), int(handle.size[1])
+    except Image.DecompressionBombError as exc:
+        raise _bomb_error(path, exc) from exc
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError):
+        return None
+
+
+def image_has_alpha(path: Path) -> bool:
+    """Whether the image file holds an alpha channel (or a transparent palette entry), from its header."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as handle:
+            return handle.mode in ("RGBA", "LA", "PA", "RGBa", "La") or "transparency" in handle.info
+    except Exception:  # noqa: BLE001  a format Pillow does not know (EXR): OpenCV's channel count decides on read
+        return False
+
+
 def check_complete(path: Path) -> None:
     """An error naming ``path`` when its image data ends early or is damaged.
 
@@ -62,6 +100,8 @@ def check_complete(path: Path) -> None:
         handle = Image.open(path)
     except UnidentifiedImageError:
         return
+    except Image.DecompressionBombError as exc:
+        raise _bomb_error(path, exc) from exc
     except OSError as exc:
         raise DataParserError(f"image file {path} cannot be opened ({exc}): re-export or remove it") from exc
     try:
@@ -87,7 +127,15 @@ def to_uint8(image: np.ndarray, path: str | Path = "<array>") -> np.ndarray:
                 f"image {path} has {int(bad.sum())} NaN/inf values: fix or re-export the file "
                 "(expected values in [0,1])"
             )
-        return np.round(np.clip(image, 0.0, 1.0) * 255.0).astype(np.uint8)
+        low, high = float(image.min()), float(image.max())
+        if low >= 0.0 and high <= 1.0:
+            return np.round(image * 255.0).astype(np.uint8)
+        if low >= 0.0 and high <= 255.0:  # a float file holding 8-bit values: its real range, not clipped to white
+            return np.round(image).astype(np.uint8)
+        raise DataParserError(
+            f"image {path} is a float image with values in [{low:g}, {high:g}], neither 0..1 nor 0..255: rescale it "
+            "to one of those ranges (or export it as 8/16-bit)"
+        )
     raise DataParserError(f"image {path} has unsupported pixel type {image.dtype}: expected 8/16-bit or float")
 
 
@@ -96,14 +144,11 @@ def image_size(path: str | Path) -> tuple[int, int]:
     path = Path(path)
     if not path.is_file():
         raise DataParserError(f"image file {path} does not exist: check the scene's image folder and split lists")
-    try:
-        from PIL import Image
-
-        with Image.open(path) as handle:
-            return int(handle.size[0]), int(handle.size[1])
-    except (OSError, ValueError):  # PIL cannot parse every format OpenCV reads (e.g. EXR): decode fully
-        image = read_image(path)
-        return int(image.shape[1]), int(image.shape[0])
+    size = header_size(path)
+    if size is not None:
+        return size
+    image = read_image(path)  # PIL cannot parse every format OpenCV reads (e.g. EXR): decode fully
+    return int(image.shape[1]), int(image.shape[0])
 
 
 def write_image_atomic(path: Path, image: np.ndarray) -> None:
@@ -182,9 +227,18 @@ def derived_is_fresh(target: Path, source: Path, derived_folder: Path) -> bool:
 
 
 def write_derived(target: Path, image: np.ndarray, source: Path, derived_folder: Path) -> None:
-    """Write a derived image and record its source's size and mtime (see :func:`derived_is_fresh`)."""
-    write_image_atomic(target, image)
-    atomic_write_text(_record_path(target, derived_folder), json.dumps(_source_stamp(source)))
+    """Write a derived image and record its source's size and mtime (see :func:`derived_is_fresh`); a full disk is
+    a :class:`DataParserError` naming the file (the atomic write leaves no partial file)."""
+    try:
+        write_image_atomic(target, image)
+        atomic_write_text(_record_path(target, derived_folder), json.dumps(_source_stamp(source)))
+    except OSError as exc:
+        if exc.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES, errno.EPERM):
+            raise
+        raise DataParserError(
+            f"could not write the derived image {target} ({exc.strerror or exc}): free space there, or set "
+            f"cache_dir (or ${CACHE_ENV}) to a folder with room; nothing partial was left"
+        ) from exc
 
 
 def resized_size(width: int, height: int, factor: int) -> tuple[int, int]:
@@ -195,12 +249,24 @@ def resized_size(width: int, height: int, factor: int) -> tuple[int, int]:
     return new_w, new_h
 
 
+#: suffixes whose files keep an alpha channel losslessly (a JPEG copy of an RGBA image would drop it)
+ALPHA_SUFFIXES = (".png", ".tif", ".tiff")
+
+
+def derived_name(relative: Path, source: Path) -> Path:
+    """The name of a derived copy of ``source``: its own, or ``.png`` when it has alpha that its format would lose."""
+    if relative.suffix.lower() not in ALPHA_SUFFIXES and image_has_alpha(source):
+        return relative.with_suffix(".png")
+    return relative
+
+
 def downscaled_paths(
     image_paths: list[Path], images_dir: Path, factor: int, cache_dir: Path | None = None
 ) -> list[Path]:
     """Paths of ``image_paths`` downscaled ``factor`` times (``cv2.INTER_AREA``), creating missing ones.
 
-    Copies live in ``<images_dir name>_<factor>/`` (nerfstudio's layout) and keep the relative path and file name.
+    Copies live in ``<images_dir name>_<factor>/`` (nerfstudio's layout) and keep the relative path and file name
+    (an image with alpha in a format that cannot hold it, e.g. a PNG named .jpg, gets a .png copy: alpha survives).
     A copy already next to the images (shipped with the scene, or written there by an earlier run) is used as is;
     a missing one is written under :func:`derived_root`.
     """
@@ -213,7 +279,7 @@ def downscaled_paths(
     derived = derived_root(images_dir, cache_dir) / folder
     out = []
     for path in image_paths:
-        relative = Path(path).relative_to(images_dir)
+        relative = derived_name(Path(path).relative_to(images_dir), Path(path))
         if cache_dir is None and derived_is_fresh(beside / relative, path, beside):
             out.append(beside / relative)
             continue

@@ -37,12 +37,21 @@ from kc_splatfacto.data.base import (
     DataParser,
     DataParserConfig,
     DataParserError,
+    _homogeneous,
     make_cameras,
     normalize_poses,
     opencv_to_opengl,
+    read_text_file,
     scene_scale_of,
 )
-from kc_splatfacto.data.colmap import ColmapCamera, check_image_sizes, pinhole_images, prepare_masks, split_indices
+from kc_splatfacto.data.colmap import (
+    ColmapCamera,
+    check_image_sizes,
+    check_principal_point,
+    pinhole_images,
+    prepare_masks,
+    split_indices,
+)
 from kc_splatfacto.data.images import image_size
 from kc_splatfacto.data.outputs import DataparserOutputs
 from kc_splatfacto.data.paths import inside_folder
@@ -76,12 +85,115 @@ def load_transforms_json(data: Path) -> tuple[dict, Path, Path]:
     if not json_path.is_file():
         raise DataParserError(f"{json_path} does not exist: give a folder holding transforms.json, or the .json file")
     try:
-        meta = json.loads(json_path.read_text())
+        meta = json.loads(read_text_file(json_path))
     except json.JSONDecodeError as exc:
         raise DataParserError(f"{json_path} is not valid JSON: {exc}") from exc
     if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list):
         raise DataParserError(f"{json_path} has no 'frames' list: not a nerfstudio/instant-ngp transforms file")
+    check_transforms_schema(meta, json_path)
     return meta, json_path.parent, json_path
+
+
+# ------------------------------------------------------------------------------------------------ the schema
+
+#: |R^T R - I| above this (or det R <= 0) is not a rotation: a scaled, sheared, singular or mirrored camera
+ROTATION_TOLERANCE = 1e-3
+NUMBER_KEYS = (*INTRINSIC_KEYS, *DISTORTION_KEYS, "camera_angle_x", "camera_angle_y")
+STRING_KEYS = ("file_path", "mask_path", "camera_model", "ply_file_path", "depth_file_path")
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _matrix(value, where: str, shapes: tuple[tuple[int, int], ...]) -> np.ndarray:
+    """``value`` as a float64 matrix of one of ``shapes``; a :class:`DataParserError` naming ``where`` otherwise."""
+    allowed = " or ".join(f"{r}x{c}" for r, c in shapes)
+    if not isinstance(value, list) or not all(isinstance(row, list) for row in value):
+        raise DataParserError(f"{where} must be a {allowed} list of rows of numbers, got {type(value).__name__}")
+    lengths = [len(row) for row in value]
+    if not all(_is_number(v) for row in value for v in row):
+        bad = next(v for row in value for v in row if not _is_number(v))
+        raise DataParserError(f"{where} must hold numbers only, found {bad!r}")
+    if len(set(lengths)) > 1:
+        raise DataParserError(f"{where} is ragged (rows of {lengths} numbers): it must be {allowed}")
+    shape = (len(value), lengths[0] if lengths else 0)
+    if shape not in shapes:
+        raise DataParserError(f"{where} is {shape[0]}x{shape[1]}: it must be {allowed}")
+    matrix = np.asarray(value, np.float64)
+    if not np.isfinite(matrix).all():
+        raise DataParserError(f"{where} contains NaN/inf: fix it")
+    return matrix
+
+
+def _check_pose(matrix: np.ndarray, where: str) -> None:
+    """A camera-to-world: proper rotation (orthonormal, det +1) and, for 4x4, the bottom row 0 0 0 1."""
+    if matrix.shape[0] == 4 and not np.allclose(matrix[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
+        raise DataParserError(f"{where} has the bottom row {matrix[3].tolist()}: a camera-to-world ends in 0 0 0 1")
+    rotation = matrix[:3, :3]
+    error = float(np.abs(rotation.T @ rotation - np.eye(3)).max())
+    det = float(np.linalg.det(rotation))
+    if error > ROTATION_TOLERANCE or det <= 0:
+        what = "singular" if abs(det) < 1e-9 else "a mirror (det < 0)" if det < 0 else f"not orthonormal (|R^T R - I| = {error:.3g})"
+        raise DataParserError(
+            f"{where}: its 3x3 rotation part is {what}, so it is not a camera pose: each transform_matrix must be a "
+            "rotation and a translation (camera-to-world, OpenGL axes)"
+        )
+
+
+def _check_number(value, where: str) -> None:
+    if not _is_number(value) or not math.isfinite(value):
+        raise DataParserError(f"{where} must be a finite number, got {value!r}")
+
+
+def _check_camera_values(holder: dict, where) -> None:
+    """Types and ranges of the intrinsics a frame (or the file) gives; ``where(key)`` names a field in messages."""
+    for key in NUMBER_KEYS:
+        if key in holder:
+            _check_number(holder[key], f"{where(key)}")
+    for key in ("fl_x", "fl_y"):
+        if key in holder and holder[key] <= 0:
+            raise DataParserError(
+                f"{where(key)} is {holder[key]!r}: a focal length must be > 0 (a negative one mirrors the image; "
+                "flip the pose instead)"
+            )
+    for key in ("w", "h"):
+        if key in holder and (holder[key] != int(holder[key]) or holder[key] < 1):
+            raise DataParserError(f"{where(key)} is {holder[key]!r}: an image size must be a positive integer")
+    for key in ("camera_angle_x", "camera_angle_y"):
+        if key in holder and not 0.0 < holder[key] < math.pi:
+            raise DataParserError(
+                f"{where(key)} is {holder[key]!r}: a field of view in radians must be in (0, pi)"
+            )
+    for key in STRING_KEYS:
+        if key in holder and not (isinstance(holder[key], str) and holder[key]):
+            raise DataParserError(f"{where(key)} must be a non-empty string, got {holder[key]!r}")
+
+
+def check_transforms_schema(meta: dict, json_path: Path) -> None:
+    """``meta`` against nerfstudio's transforms.json format: types, shapes, finiteness, proper rotations, positive
+    focal lengths and sizes; a :class:`DataParserError` naming the file, the frame index and the field."""
+    _check_camera_values(meta, lambda key: f"{json_path}: '{key}'")
+    if not meta["frames"]:
+        raise DataParserError(f"{json_path}: 'frames' is empty: list at least one frame")
+    for i, frame in enumerate(meta["frames"]):
+        where = f"{json_path}: frames[{i}]"
+        if not isinstance(frame, dict):
+            raise DataParserError(
+                f"{where} is {json.dumps(frame)}: every frame must be an object with 'file_path' and 'transform_matrix'"
+            )
+        for key in ("file_path", "transform_matrix"):
+            if key not in frame:
+                raise DataParserError(f"{where} has no '{key}': every frame needs 'file_path' and 'transform_matrix'")
+        _check_camera_values(frame, lambda key, where=where: f"{where}.{key}")
+        _check_pose(_matrix(frame["transform_matrix"], f"{where}.transform_matrix", ((4, 4), (3, 4))),
+                    f"{where}.transform_matrix")
+    if "applied_transform" in meta:
+        _matrix(meta["applied_transform"], f"{json_path}: 'applied_transform'", ((3, 4), (4, 4)))
+    for split in ("train", "val", "test"):
+        names = meta.get(f"{split}_filenames")
+        if names is not None and not (isinstance(names, list) and all(isinstance(n, str) for n in names)):
+            raise DataParserError(f"{json_path}: '{split}_filenames' must be a list of file names (strings)")
 
 
 def _frame_value(frame: dict, meta: dict, key: str, json_path: Path, default=None):
@@ -135,6 +247,7 @@ def frame_camera(frame: dict, meta: dict, json_path: Path, image_path: Path | No
         )
     if not np.isfinite([camera.fx, camera.fy, camera.cx, camera.cy, *distortion]).all() or camera.fx <= 0:
         raise DataParserError(f"{json_path}: frame '{frame.get('file_path')}' has invalid intrinsics")
+    check_principal_point(camera, f"{json_path} (frame '{frame.get('file_path')}')")
     return camera
 
 
@@ -172,9 +285,9 @@ class TransformsDataParser(DataParser):
         twice = sorted({str(p) for p, q in zip(paths, paths[1:]) if p == q})
         if twice:  # one image with two poses would be trained on twice, with contradicting cameras
             raise DataParserError(f"{json_path}: frames {', '.join(twice)} appear more than once: keep one frame each")
-        c2w_gl = np.stack([np.asarray(frame["transform_matrix"], np.float64) for _, frame in frames])
-        if c2w_gl.shape[1:] not in ((4, 4), (3, 4)):
-            raise DataParserError(f"{json_path}: transform_matrix must be 4x4 (or 3x4), got {c2w_gl.shape[1:]}")
+        # 3x4 and 4x4 may mix (the schema checked each): all made 4x4
+        c2w_gl = np.stack([_homogeneous(np.asarray(frame["transform_matrix"], np.float64)[None])[0]
+                           for _, frame in frames])
         bad = [str(frames[i][1]["file_path"]) for i in range(len(frames)) if not np.isfinite(c2w_gl[i]).all()]
         if bad:
             raise DataParserError(

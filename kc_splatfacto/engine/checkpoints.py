@@ -43,7 +43,9 @@ def save_checkpoint(directory: Path, step: int, payload: dict[str, Any], only_la
     except (OSError, RuntimeError) as exc:  # torch.save reports a full disk as RuntimeError from its zip writer
         if isinstance(exc, OSError) and exc.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS):
             raise
-        if isinstance(exc, RuntimeError) and "write" not in str(exc).lower():
+        if isinstance(exc, RuntimeError) and not any(
+            hint in str(exc).lower() for hint in ("write", "unexpected pos", "file", "space")
+        ):  # PyTorch's zip writer reports a full disk as "unexpected pos N vs M" (its stream fell short)
             raise
         raise CheckpointError(
             f"could not write checkpoint {path} ({exc}): is the disk full? Free space and resume with --load-dir "
@@ -66,13 +68,28 @@ def list_checkpoints(directory: Path) -> list[Path]:
 
 
 def find_checkpoint(load_dir: Path, step: int | None = None) -> Path:
-    """The checkpoint of ``step`` (newest when None) in ``load_dir`` (a nerfstudio_models folder or a run folder)."""
+    """The checkpoint of ``step`` (newest when None) in ``load_dir`` (a nerfstudio_models folder, a run folder, or
+    a checkpoint file itself)."""
     load_dir = Path(load_dir)
+    if load_dir.is_file():
+        match = CHECKPOINT_PATTERN.match(load_dir.name)
+        if match is None:
+            raise CheckpointNotFoundError(
+                f"{load_dir} is a file but not a step-XXXXXXXXX.ckpt checkpoint: pass a run folder, its "
+                "nerfstudio_models folder or one of its checkpoints"
+            )
+        if step is not None and int(match.group(1)) != step:
+            raise CheckpointNotFoundError(
+                f"{load_dir} is the checkpoint of step {int(match.group(1))}, not of the step {step} asked for: pass "
+                "its folder to choose a step, or leave the step out"
+            )
+        return load_dir
     if (load_dir / CHECKPOINT_DIR).is_dir():
         load_dir = load_dir / CHECKPOINT_DIR
     if not load_dir.is_dir():
         raise CheckpointNotFoundError(
-            f"checkpoint folder {load_dir} does not exist: pass a run's nerfstudio_models folder"
+            f"checkpoint folder {load_dir} does not exist: pass a run folder, its nerfstudio_models folder or a "
+            "step-XXXXXXXXX.ckpt file"
         )
     checkpoints = list_checkpoints(load_dir)
     if not checkpoints:
@@ -84,6 +101,40 @@ def find_checkpoint(load_dir: Path, step: int | None = None) -> Path:
         steps = [int(CHECKPOINT_PATTERN.match(p.name).group(1)) for p in checkpoints]
         raise CheckpointNotFoundError(f"no checkpoint for step {step} in {load_dir} (has steps {steps})")
     return path
+
+
+#: what a checkpoint records about the run that wrote it (beside the state), to refuse loading it into another
+RUN_IDENTITY_KEY = "run"
+#: the config field each identity entry comes from
+IDENTITY_FIELDS = {"method_name": "method_name", "sh_degree": "pipeline.model.sh_degree"}
+
+
+def run_identity(config: Any) -> dict[str, Any]:
+    """The settings a checkpoint's tensors depend on: the method and the SH degree (features_rest's width)."""
+    return {"method_name": str(config.method_name), "sh_degree": int(config.pipeline.model.sh_degree)}
+
+
+def check_checkpoint_fits(checkpoint: dict[str, Any], config: Any, path: Path, same_method: bool = True) -> None:
+    """A :class:`CheckpointError` when ``checkpoint`` was written by a run of another method (unless not
+    ``same_method``) or SH degree than ``config`` describes (its recorded identity, and the SH coefficients its
+    Gaussians hold)."""
+    recorded = checkpoint.get(RUN_IDENTITY_KEY) or {}
+    expected = run_identity(config)
+    if not same_method:
+        expected.pop("method_name")
+    found = [f"{IDENTITY_FIELDS[key]} {recorded[key]!r} in the checkpoint vs {value!r} in the config"
+             for key, value in expected.items() if key in recorded and recorded[key] != value]
+    rest = checkpoint.get("model", {}).get("features_rest") if isinstance(checkpoint.get("model"), dict) else None
+    if rest is not None and "sh_degree" not in recorded and getattr(rest, "ndim", 0) == 3:
+        degree = expected["sh_degree"]
+        if rest.shape[1] != (degree + 1) ** 2 - 1:
+            found.append(f"features_rest holds {rest.shape[1]} SH coefficients per colour, pipeline.model.sh_degree {degree} has "
+                         f"{(degree + 1) ** 2 - 1}")
+    if found:
+        raise CheckpointError(
+            f"checkpoint {path} was written by another run ({'; '.join(found)}): it does not fit this config; "
+            "pass the config.yml of the run that wrote it"
+        )
 
 
 def remove_orphan_temp_files(directory: Path) -> list[Path]:

@@ -9,20 +9,24 @@ sent could run arbitrary code. :class:`ConfigLoader` is PyYAML's ``SafeLoader`` 
 - ``!!python/object/apply:pathlib.PosixPath`` (and the other pathlib classes): ``Path(*parts)``;
 - ``!!python/tuple``.
 
-Every other tag is a :class:`~kc_splatfacto.errors.ConfigFileError` naming the file and line.
+Every other tag is a :class:`~kc_splatfacto.errors.ConfigFileError` naming the file and line, and so is a key the
+config class has no field for (with a did-you-mean). The rebuilt config then goes through
+:func:`kc_splatfacto.engine.validation.validate_config`: a value of the wrong type or out of range names the file and
+the dotted field.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import importlib
 import pathlib
-import warnings
 from pathlib import Path
 from typing import Any
 
 import yaml
 
+from kc_splatfacto.engine.validation import ConfigValueError, validate_config
 from kc_splatfacto.errors import ConfigFileError, ConfigFileNotFoundError
 
 PROJECT_PACKAGE = "kc_splatfacto"
@@ -81,18 +85,21 @@ def _construct_dataclass(loader: ConfigLoader, suffix: str, node: yaml.Node) -> 
     cls = _allowed_class(loader, suffix, node)
     if not isinstance(node, yaml.MappingNode):
         raise ConfigFileError(f"{_where(loader, node)}: {suffix} must be a mapping of its fields")
-    state = loader.construct_mapping(node, deep=True)
     init_fields = {f.name for f in dataclasses.fields(cls) if f.init}
+    for key_node, _ in node.value:  # an unknown key is a typo or another version's field: never silently dropped
+        key = key_node.value if isinstance(key_node, yaml.ScalarNode) else None
+        if key not in init_fields:
+            close = difflib.get_close_matches(str(key), sorted(init_fields), n=1)
+            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            raise ConfigFileError(
+                f"{_where(loader, key_node)}: {cls.__name__} has no field '{key}'{hint}: fix or remove that line "
+                f"(its fields: {', '.join(sorted(init_fields))})"
+            )
+    state = loader.construct_mapping(node, deep=True)
     try:
-        obj = cls(**{k: v for k, v in state.items() if k in init_fields})
-    except TypeError as exc:
+        return cls(**state)
+    except Exception as exc:  # noqa: BLE001  a __post_init__ refusing a value, a missing required field
         raise ConfigFileError(f"{_where(loader, node)}: cannot build {suffix} from its fields: {exc}") from exc
-    unknown = sorted(set(state) - init_fields)
-    if unknown:  # a field renamed or removed since the run: kept as an attribute, as yaml's object loader did
-        warnings.warn(f"{_where(loader, node)}: {cls.__name__} has no field(s) {unknown}; kept as attributes")
-        for key in unknown:
-            setattr(obj, key, state[key])
-    return obj
 
 
 def _construct_apply(loader: ConfigLoader, suffix: str, node: yaml.Node) -> Any:
@@ -153,4 +160,8 @@ def read_config_file(path: Path | str) -> Any:
             f"{path} does not hold a kc-splatfacto TrainerConfig (found {type(config).__name__}): pass the "
             "config.yml of a run folder"
         )
+    try:
+        validate_config(config)
+    except ConfigValueError as exc:
+        raise ConfigFileError(f"{path}: {exc}; fix that value in the file") from exc
     return config

@@ -13,7 +13,7 @@ from typing import Any, Literal
 import torch
 import tyro
 
-from kc_splatfacto.data.base import write_dataparser_transforms
+from kc_splatfacto.data.base import DataParserError, write_dataparser_transforms
 from kc_splatfacto.data.dataset import ImageDataset
 
 
@@ -62,7 +62,7 @@ class DataManagerConfig:
 
         parser_config = self.dataparser
         if self.data is None and isinstance(parser_config, AutoDataParserConfig) and parser_config.data == Path("."):
-            raise ValueError("no scene given: pass --data PATH (a scene folder, or 'demo' for the demo scene)")
+            raise DataParserError("no scene given: pass --data PATH (a scene folder, or 'demo' for the demo scene)")
         if self.data is not None:
             parser_config = dataclasses.replace(parser_config, data=Path(self.data))
         if isinstance(parser_config, AutoDataParserConfig):
@@ -90,7 +90,7 @@ class DataManager:
         self.train_dataset = ImageDataset(self.train_outputs)
         self.eval_dataset = ImageDataset(self.eval_outputs)
         if len(self.train_dataset) == 0:
-            raise ValueError(f"the train split of {self.dataparser_config.data} is empty: a scene needs at least one "
+            raise DataParserError(f"the train split of {self.dataparser_config.data} is empty: a scene needs at least one "
                              "training image")
         self._rng = random.Random(seed)
         self._unseen: list[int] = []

@@ -1,12 +1,17 @@
 """Checks that run before a training run loads any data, and the resume rules.
 
 :func:`plan_run` refuses settings that would silently do nothing or the wrong thing, before the (slow) scene load:
+- any config field of the wrong type or out of range (:mod:`kc_splatfacto.engine.validation`);
 - ``max_num_iterations`` below 1 (a run folder with no checkpoint);
 - an output folder that cannot be written;
 - a resume (``load_dir``) whose checkpoint is past ``max_num_iterations`` (it would train nothing);
 - a resume of another scene's, method's or dataparser's run: it would overwrite that run's ``config.yml`` and
   ``dataparser_transforms.json`` and delete its checkpoints. ``resume_from_other_run`` allows it, into a *new* run
-  folder; the other run's files are never touched.
+  folder; the other run's files are never touched;
+- a resume of the same run with other settings (:func:`setting_differences`, e.g. another downscale factor or SH
+  degree): config.yml would describe the steps already taken wrongly. ``resume_from_other_run`` continues from the
+  checkpoint with the new settings in a new run folder;
+- a checkpoint that does not fit the config (another method or SH degree: ``checkpoints.check_checkpoint_fits``).
 
 A resume of the same run also removes checkpoint temp files a hard kill left behind and drops ``metrics.jsonl``
 records written after the checkpoint (they will be written again), so the log has no duplicate or backwards steps.
@@ -25,10 +30,12 @@ from typing import Any
 from kc_splatfacto.atomic import atomic_write_text
 from kc_splatfacto.engine.checkpoints import (
     CHECKPOINT_DIR,
+    check_checkpoint_fits,
     find_checkpoint,
     load_checkpoint,
     remove_orphan_temp_files,
 )
+from kc_splatfacto.engine.validation import validate_config
 from kc_splatfacto.errors import ResumeError, UserError
 
 OVERRIDE_FLAG = "--resume-from-other-run True"
@@ -52,12 +59,14 @@ class RunPlan:
 
 
 def check_settings(config: Any) -> None:
-    """Settings that are wrong whatever the scene: refused before anything is loaded or written."""
+    """Settings that are wrong whatever the scene (every field's type and range, engine/validation.py): refused
+    before anything is loaded or written."""
     iterations = config.max_num_iterations
     if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
         raise UserError(f"--max-num-iterations must be at least 1, got {iterations!r}")
     if not isinstance(config.steps_per_save, int) or config.steps_per_save < 1:
         raise UserError(f"--steps-per-save must be at least 1, got {config.steps_per_save!r}")
+    validate_config(config)
     check_writable_folder(Path(config.output_dir), "--output-dir")
 
 
@@ -98,7 +107,7 @@ def scene_of(config: Any, parser: Any = None) -> str | None:
         parser = _dataparser(config)
     if str(data) == "demo" and type(parser).__name__.startswith(("Demo", "Auto", "NoneType")):
         return "demo"
-    return str(Path(data).expanduser().absolute())
+    return str(Path(data).expanduser().resolve())  # resolved: a scene reached through a symlink is the same scene
 
 
 def differences(stored: Any, current: Any, parser_settings: bool = False) -> list[str]:
@@ -120,6 +129,60 @@ def differences(stored: Any, current: Any, parser_settings: bool = False) -> lis
                    if k != "data" and stored_fields.get(k) != v]
         if changed:
             found.append(f"dataparser settings ({', '.join(changed)})")
+    return found
+
+
+#: fields a resume may change: how long, how often and where it logs, evaluates and saves, on which device; every
+#: other field (model, optimizers, dataparser settings, seed) must equal the stored run's, or config.yml would lie
+#: about the steps already taken
+RESUMABLE_FIELDS = (
+    "method_name", "experiment_name", "output_dir", "timestamp", "data", "max_num_iterations", "steps_per_save",
+    "steps_per_eval_all_images", "eval_at_steps", "final_lpips_nets", "save_only_latest_checkpoint", "load_dir",
+    "load_step", "resume_from_other_run", "max_consecutive_bad_steps", "machine.device", "logging",
+    "pipeline.datamanager.data", "pipeline.datamanager.dataparser", "pipeline.datamanager.eval_split",
+    "pipeline.model.rasterization_backend",
+)
+#: dataparser fields that say where, not what: compared as the scene (data) or not at all (cache_dir)
+PARSER_LOCATION_FIELDS = ("data", "cache_dir", "demo_cache_dir")
+
+
+def _leaves(value: Any, prefix: str = "") -> dict[str, Any]:
+    """{dotted name: value} of every non-dataclass field under ``value``."""
+    if not dataclasses.is_dataclass(value) or isinstance(value, type):
+        return {prefix.rstrip("."): value}
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(value):
+        out.update(_leaves(getattr(value, f.name), f"{prefix}{f.name}."))
+    return out
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    return a == b
+
+
+def setting_differences(stored: Any, current: Any) -> list[str]:
+    """The settings (dotted names, stored vs current) in which ``current`` would train differently from ``stored``:
+    every field but :data:`RESUMABLE_FIELDS`, and the resolved dataparser's settings (its scene is compared by
+    :func:`differences`)."""
+    found = []
+    stored_leaves, current_leaves = _leaves(stored), _leaves(current)
+    for name in sorted(set(stored_leaves) | set(current_leaves)):
+        if any(name == f or name.startswith(f + ".") for f in RESUMABLE_FIELDS):
+            continue
+        a, b = stored_leaves.get(name, "(absent)"), current_leaves.get(name, "(absent)")
+        if not _same(a, b):
+            found.append(f"{name} {a!r} vs {b!r}")
+    stored_parser, current_parser = _dataparser(stored), _dataparser(current)
+    if type(stored_parser) is type(current_parser) and dataclasses.is_dataclass(stored_parser):
+        a_fields, b_fields = _leaves(stored_parser), _leaves(current_parser)
+        for name in sorted(set(a_fields) | set(b_fields)):
+            if name in PARSER_LOCATION_FIELDS:
+                continue
+            a, b = a_fields.get(name, "(absent)"), b_fields.get(name, "(absent)")
+            if not _same(a, b):
+                found.append(f"pipeline.datamanager.dataparser.{name} {a!r} vs {b!r}")
     return found
 
 
@@ -170,7 +233,20 @@ def plan_run(config: Any, map_location: Any = "cpu") -> RunPlan:
     else:
         from kc_splatfacto.engine.config_file import read_config_file
 
-        problems = differences(read_config_file(stored_path), config)
+        stored = read_config_file(stored_path)
+        problems = differences(stored, config)
+        if not problems:
+            changed = setting_differences(stored, config)
+            if changed and getattr(config, "resume_from_other_run", False):
+                check_checkpoint_fits(checkpoint, config, path, same_method=False)
+                return RunPlan(run_dir=None, checkpoint=checkpoint, checkpoint_path=path)
+            if changed:
+                raise ResumeError(
+                    f"--load-dir {config.load_dir}: this command would train that run on with other settings than "
+                    f"its {stored_path} ({'; '.join(changed)}), and config.yml would then describe its first "
+                    f"{step} steps wrongly. Resume with the run's settings, or pass {OVERRIDE_FLAG} to continue "
+                    "from its checkpoint with these settings in a new run folder"
+                )
     if problems:
         if not getattr(config, "resume_from_other_run", False):
             raise ResumeError(
@@ -178,11 +254,36 @@ def plan_run(config: Any, map_location: Any = "cpu") -> RunPlan:
                 f"overwrite its files. Pass {OVERRIDE_FLAG} to start a new run folder from that checkpoint "
                 "(the other run is left untouched)"
             )
+        check_checkpoint_fits(checkpoint, config, path, same_method=False)
         return RunPlan(run_dir=None, checkpoint=checkpoint, checkpoint_path=path)
+    check_checkpoint_fits(checkpoint, config, path)  # the run's config.yml and its checkpoint must agree
     check_writable_folder(run_dir, "the run folder")
     remove_orphan_temp_files(run_dir / CHECKPOINT_DIR)
     trimmed = trim_metrics(run_dir / "metrics.jsonl", step)
     return RunPlan(run_dir=run_dir, checkpoint=checkpoint, checkpoint_path=path, trimmed_records=trimmed)
+
+
+def check_training_image_sizes(datamanager: Any, model_config: Any) -> None:
+    """Every training image must stay large enough for SSIM's window at the coarsest training resolution
+    (1/2^num_downscales of the parsed size): refused before the first step, naming both settings that shrink it."""
+    from kc_splatfacto.metrics import SSIM_WINDOW
+
+    need = SSIM_WINDOW // 2 + 1
+    cameras = datamanager.train_dataset.cameras
+    divisor = 2 ** int(model_config.num_downscales)
+    sizes = list(zip(cameras.widths.tolist(), cameras.heights.tolist()))
+    index = min(range(len(sizes)), key=lambda i: min(sizes[i]))
+    width, height = sizes[index]
+    if min(width // divisor, height // divisor) >= need:
+        return
+    factor = getattr(datamanager.dataparser_config, "downscale_factor", 1)
+    name = datamanager.train_dataset.image_filenames[index]
+    raise UserError(
+        f"training image {name} is {width}x{height} after the dataparser's downscale_factor {factor}, and "
+        f"{width // divisor}x{height // divisor} at the first training resolution (1/{divisor}, "
+        f"pipeline.model.num_downscales {model_config.num_downscales}): SSIM needs at least {need} pixels a side. "
+        "Lower --downscale-factor or --pipeline.model.num-downscales"
+    )
 
 
 def store_absolute_scene_path(config: Any) -> None:
@@ -212,8 +313,10 @@ __all__ = [
     "RunPlan",
     "announce_seed_points",
     "check_settings",
+    "check_training_image_sizes",
     "check_writable_folder",
     "differences",
+    "setting_differences",
     "plan_run",
     "store_absolute_scene_path",
     "trim_metrics",

@@ -8,7 +8,13 @@ from typing import Any
 
 import torch
 
-from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, CHECKPOINT_PATTERN, find_checkpoint, load_checkpoint
+from kc_splatfacto.engine.checkpoints import (
+    CHECKPOINT_DIR,
+    CHECKPOINT_PATTERN,
+    check_checkpoint_fits,
+    find_checkpoint,
+    load_checkpoint,
+)
 from kc_splatfacto.engine.config import load_config
 from kc_splatfacto.engine.pipeline import Pipeline
 from kc_splatfacto.engine.trainer import TrainerConfig
@@ -44,8 +50,13 @@ def check_stored_scene(config: TrainerConfig, config_path: Path) -> None:
     is a :class:`UserError` saying so, rather than a "check --data" message about a flag kc-eval does not have."""
     parser = config.pipeline.datamanager.dataparser
     data = getattr(parser, "data", None) if parser is not None else config.pipeline.datamanager.data
-    if data is None or str(data) == "demo" or Path(data).is_absolute() or Path(data).exists():
+    if data is None or str(data) == "demo" or Path(data).exists():
         return
+    if Path(data).is_absolute():
+        raise UserError(
+            f"the scene {data} that {config_path} names does not exist (moved or deleted?): put the scene back there, "
+            "or set 'data:' in that config.yml to where it is now"
+        )
     raise UserError(
         f"{config_path} stores the scene as the relative path '{data}', which does not exist from {Path.cwd()}: run "
         "from the folder kc-train was started in, or make 'data:' in that config.yml absolute"
@@ -63,6 +74,7 @@ def load_run(config_path: Path | str, step: int | None = None, device: str | tor
     check_stored_scene(config, config_path)
     pipeline = config.pipeline.setup(device=device, seed=config.machine.seed)  # as the trainer builds it
     checkpoint = load_checkpoint(checkpoint_path, map_location=device)
+    check_checkpoint_fits(checkpoint, config, checkpoint_path)
     pipeline.load_state_dict({"model": checkpoint["model"]}, step=int(checkpoint["step"]))
     model = pipeline.model
     model.eval()

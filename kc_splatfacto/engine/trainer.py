@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from kc_splatfacto.engine.callbacks import RecordSink, TrainingCallback, TrainingCallbackLocation, run_callbacks
-from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, save_checkpoint
+from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, RUN_IDENTITY_KEY, run_identity, save_checkpoint
 from kc_splatfacto.engine.config import LoggingConfig, MachineConfig, ViewerConfig, save_config
 from kc_splatfacto.engine.evaluation import FINAL_LPIPS_NETS
 from kc_splatfacto.engine.gradient_shares import gradient_shares
@@ -39,7 +39,12 @@ from kc_splatfacto.engine.loggers import check_backends, logging_sinks
 from kc_splatfacto.engine.metrics_log import MetricsWriter, ProgressBar
 from kc_splatfacto.engine.optimizers import OptimizersConfig
 from kc_splatfacto.engine.pipeline import Pipeline, PipelineConfig
-from kc_splatfacto.engine.run_guard import announce_seed_points, plan_run, store_absolute_scene_path
+from kc_splatfacto.engine.run_guard import (
+    announce_seed_points,
+    check_training_image_sizes,
+    plan_run,
+    store_absolute_scene_path,
+)
 from kc_splatfacto.engine.signals import install_stop_handlers, restore_handlers
 from kc_splatfacto.render.errors import NonFiniteInputError
 
@@ -183,6 +188,7 @@ class Trainer:
         check_backends(cfg.logging)
         cfg.machine.seed_everything()
         self.pipeline = cfg.pipeline.setup(device=self.device, seed=cfg.machine.seed)
+        check_training_image_sizes(self.datamanager, cfg.pipeline.model)
         announce_seed_points(self.datamanager, cfg.pipeline.model)
         self.model.train()
         self._build_optimizers()
@@ -215,6 +221,7 @@ class Trainer:
     def _checkpoint_payload(self, step: int) -> dict[str, Any]:
         return {
             "step": step,
+            RUN_IDENTITY_KEY: run_identity(self.config),
             **self.pipeline.state_dict(),  # model, strategy_state, datamanager (top-level: the format stays readable)
             "optimizers": {k: opt.state_dict() for k, opt in self.optimizers.items()},
             "schedulers": {k: s.state_dict() for k, s in self.schedulers.items()},

@@ -169,7 +169,7 @@ def test_transforms_bad_inputs(tmp_path):
         TransformsDataParserConfig(data=tmp_path, eval_mode="all").setup().get_dataparser_outputs("train")
     nan_frame = {"file_path": "img.png", "transform_matrix": [[float("nan")] * 4] * 4}
     (tmp_path / "transforms.json").write_text(json.dumps({"frames": [nan_frame]}))
-    with pytest.raises(DataParserError, match="img.png contains NaN"):
+    with pytest.raises(DataParserError, match=r"frames\[0\].transform_matrix contains NaN"):
         TransformsDataParserConfig(data=tmp_path).setup().get_dataparser_outputs("train")
 
 
@@ -303,3 +303,55 @@ def test_blender_style_camera_angle_x_with_rgba_images(tmp_path):
     image = dataset.image_uint8(1)  # RGBA kept: the model composites it over the background it renders with
     assert image[0, 0].tolist() == [0, 0, 0, 0] and image[15, 20].tolist() == [0, 0, 255, 255]
     assert int((image[..., 3] > 127).sum()) == 200 and dataset.mask(1) is None
+
+
+# ------------------------------------------------------------------------------------------------ issue 26
+
+
+def tiny_transforms(tmp_path):
+    from tests.hostile_scenes import transforms_scene
+
+    return transforms_scene(tmp_path / "scene")
+
+
+def parse_cameras(scene):
+    parser = TransformsDataParserConfig(data=scene).setup()
+    return parser.get_dataparser_outputs("train").cameras
+
+
+def test_3x4_and_4x4_matrices_may_mix_and_give_the_same_cameras(tmp_path):
+    scene = tiny_transforms(tmp_path)
+    reference = parse_cameras(scene)
+    path = scene / "transforms.json"
+    meta = json.loads(path.read_text())
+    for frame in meta["frames"][::2]:
+        frame["transform_matrix"] = frame["transform_matrix"][:3]
+    path.write_text(json.dumps(meta))
+    mixed = parse_cameras(scene)
+    assert torch.equal(mixed.viewmats, reference.viewmats) and torch.equal(mixed.Ks, reference.Ks)
+
+
+def test_transforms_json_with_a_byte_order_mark_parses(tmp_path):
+    scene = tiny_transforms(tmp_path)
+    reference = parse_cameras(scene)
+    path = scene / "transforms.json"
+    path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())
+    assert torch.equal(parse_cameras(scene).viewmats, reference.viewmats)
+
+
+def test_rotation_within_rounding_is_accepted_and_beyond_it_refused(tmp_path):
+    scene = tiny_transforms(tmp_path)
+    path = scene / "transforms.json"
+    meta = json.loads(path.read_text())
+    original = json.dumps(meta)
+    for scale, accepted in ((1.0 + 1e-5, True), (1.01, False)):
+        meta = json.loads(original)
+        matrix = np.asarray(meta["frames"][1]["transform_matrix"])
+        matrix[:3, :3] *= scale
+        meta["frames"][1]["transform_matrix"] = matrix.tolist()
+        path.write_text(json.dumps(meta))
+        if accepted:
+            parse_cameras(scene)
+        else:
+            with pytest.raises(DataParserError, match=r"frames\[1\].transform_matrix: its 3x3 rotation part is not orthonormal"):
+                parse_cameras(scene)

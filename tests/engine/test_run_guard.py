@@ -277,3 +277,43 @@ def test_sigterm_saves_a_checkpoint_and_exits_cleanly(tmp_path):
     checkpoints = list_checkpoints(run_dir / "nerfstudio_models")
     assert len(checkpoints) == 1 and int(checkpoints[0].stem.split("-")[1]) >= 2
 
+
+
+# ------------------------------------------------------------------------------------------------ issue 26
+
+
+def test_resume_with_other_settings_names_them_and_override_continues_in_a_new_folder(tmp_path):
+    config = tiny_demo_config("splatfacto", tmp_path, iterations=2)
+    run_dir = Trainer(config).train()
+    before = snapshot(run_dir)
+    again = tiny_demo_config("splatfacto", tmp_path, iterations=3)
+    again.load_dir = run_dir
+    again.pipeline.model.cull_alpha_thresh = 0.2
+    again.optimizers.means.optimizer.lr = 1e-4
+    with pytest.raises(ResumeError) as info:
+        Trainer(again).train()
+    message = str(info.value)
+    assert "pipeline.model.cull_alpha_thresh 0.1 vs 0.2" in message
+    assert "optimizers.means.optimizer.lr 0.00016 vs 0.0001" in message
+    assert snapshot(run_dir) == before
+    again.resume_from_other_run = True
+    again.timestamp = "other"
+    trainer = Trainer(again)
+    new_dir = trainer.train()
+    assert new_dir != run_dir and trainer.start_step == 2
+    assert snapshot(run_dir) == before
+
+
+def test_load_dir_may_name_the_checkpoint_file(tmp_path):
+    from kc_splatfacto.engine.checkpoints import CheckpointNotFoundError, find_checkpoint
+
+    config = tiny_demo_config("splatfacto", tmp_path, iterations=2)
+    config.steps_per_save, config.save_only_latest_checkpoint = 1, False
+    run_dir = Trainer(config).train()
+    first = run_dir / "nerfstudio_models" / "step-000000001.ckpt"
+    assert find_checkpoint(first) == first and find_checkpoint(first, 1) == first
+    with pytest.raises(CheckpointNotFoundError, match="is the checkpoint of step 1, not of the step 2"):
+        find_checkpoint(first, 2)
+    (run_dir / "notes.txt").write_text("x")
+    with pytest.raises(CheckpointNotFoundError, match="not a step-XXXXXXXXX.ckpt"):
+        find_checkpoint(run_dir / "notes.txt")
