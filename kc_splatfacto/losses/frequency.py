@@ -34,7 +34,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from kc_splatfacto.losses import wavelets
+from kc_splatfacto import backend
 from kc_splatfacto.losses.wavelets import MODES, WaveletCoeffs, dwt2
 
 WEIGHTINGS = ("paper", "fine", "uniform")
@@ -123,7 +123,7 @@ class _CentredMoments(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, flat: Tensor, inv_rms: Tensor, want_m4: bool, want_cov: bool):
-        if wavelets.uses_compiled_kernels(flat):
+        if backend.compiled(flat):
             return _CentredMoments._forward_cpu(ctx, flat, inv_rms, want_m4, want_cov)
         count = flat.shape[-1]
         z = torch.addcmul(-flat.mean(dim=-1, keepdim=True) * inv_rms, flat, inv_rms)  # (x - mean) / s, fused
@@ -209,7 +209,7 @@ class _CentredMoments(torch.autograd.Function):
 def _level_moments(coeffs: WaveletCoeffs, want_m4: bool, want_cov: bool) -> tuple[list[tuple], Tensor]:
     """Per level (m2 [B, C, 3], m4 or None, cov [B, C, 3, 3] or None) of the RMS-normalized centred subbands,
     and the image power s^2 [B, C, 1] they are normalized by."""
-    if wavelets.uses_compiled_kernels(coeffs.approx):
+    if backend.compiled(coeffs.approx):
         power64 = _image_power_cpu(coeffs)
         power = power64.to(coeffs.approx.dtype)
         inv_rms = torch.rsqrt(power64).unsqueeze(-1)  # [B, C, 1, 1] float64: the compiled pass's scale
@@ -398,7 +398,7 @@ def wavelet_l1(pred: WaveletBands, gt: WaveletBands, wavelet_weighting: str = "p
         return _no_band_loss(pred.coeffs)
     # sum over the 3 orientations of each one's mean = 3 * mean over the level's [B, C, 3, h, w]
     weights = [3.0 * weight for weight in level_weights(pred.coeffs.levels, wavelet_weighting)]
-    if wavelets.uses_compiled_kernels(pred.coeffs.approx):
+    if backend.compiled(pred.coeffs.approx):
         return _WeightedBandL1.apply(weights, [band.detach() for band in gt.coeffs.details], *pred.coeffs.details)
     loss = pred.coeffs.approx.new_zeros(())
     for weight, band_pred, band_gt in zip(weights, pred.coeffs.details, gt.coeffs.details):

@@ -27,6 +27,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from kc_splatfacto import backend
+
 # Boundary modes, named as in PyWavelets.
 MODES = ("symmetric", "reflect", "zero", "periodization")
 # Daubechies orders this module can build (pywt ships db1..db38; spectral factorization in float64 matches its taps
@@ -277,15 +279,9 @@ class _SeparableLevel(torch.autograd.Function):
 _INDEX_MODES = ("symmetric", "reflect", "periodization")
 
 
-def uses_compiled_kernels(x: Tensor) -> bool:
-    """Whether the wavelet losses run x's level, moments and L1 through the numba kernels (CPU tensors) rather than
-    torch ops (other devices; also the tests' oracle, by patching this to False)."""
-    return x.device.type == "cpu"
-
-
 def _level(x: Tensor, wave: str, filter_len: int, mode: str, bank: Tensor) -> tuple[Tensor, Tensor]:
     """One DWT level of x [N, 1, H, W]: (cA [N, 1, h, w], (cH, cV, cD) [N, 3, h, w])."""
-    if uses_compiled_kernels(x) and mode in _INDEX_MODES:
+    if backend.compiled(x) and mode in _INDEX_MODES:
         # (periodization's index map repeats the last sample of an odd axis itself, as PyWavelets does)
         return _SeparableLevel.apply(x, wave, mode)
     out = F.conv2d(_pad(x, filter_len, mode), bank, stride=2)

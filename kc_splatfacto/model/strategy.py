@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from kc_splatfacto import backend
 from kc_splatfacto.model import ops
 
 
@@ -39,7 +40,7 @@ def _stats_kernel_applies(grads: torch.Tensor, radii: torch.Tensor, state: dict[
     several cameras keep the torch ops, whose duplicate-index radius update it does not reproduce."""
     stats = [state["grad2d"], state["count"]] + ([state["radii"]] if state.get("radii") is not None else [])
     return (
-        grads.device.type == "cpu" and grads.dtype == torch.float32 and grads.dim() == 3 and grads.shape[0] == 1
+        backend.compiled(grads) and grads.dtype == torch.float32 and grads.dim() == 3 and grads.shape[0] == 1
         and radii.dim() == 3 and radii.dtype == torch.int32 and radii.shape == grads.shape
         and all(t.dtype == torch.float32 and t.is_contiguous() and t.shape[0] == grads.shape[1] for t in stats)
         and grads.is_contiguous() and radii.is_contiguous()
