@@ -35,13 +35,10 @@ EXTENT_SIGMA = 3.33
 
 # --- tiles (IntersectTile.cu, rendering.py) -------------------------------------------------------------------------
 TILE_SIZE = 16
-# The fast CPU path's vectorized kernels (render/_cpu_kernels.py) run for tiles of BLOCK_TILE_SIZE px only (other
-# tile sizes take its scalar kernels): a tile is BLOCKS_PER_TILE blocks of BLOCK_SIZE x BLOCK_SIZE pixels, and the
-# LANES pixels of one block are processed as branch-free SIMD lanes.
-BLOCK_TILE_SIZE = 16
+# The fast CPU path's compositing kernels (render/_cpu_kernels.py) cut a tile into blocks of BLOCK_SIZE x BLOCK_SIZE
+# pixels (ceil(tile_size / BLOCK_SIZE) per side) and process the LANES pixels of one block as branch-free SIMD lanes.
 BLOCK_SIZE = 4
 LANES = BLOCK_SIZE * BLOCK_SIZE
-BLOCKS_PER_TILE = (BLOCK_TILE_SIZE // BLOCK_SIZE) ** 2
 # isect id = camera id << (DEPTH_BITS + tile_n_bits) | tile id << DEPTH_BITS | float32 bits of the depth.
 DEPTH_BITS = 32
 # camera bits + tile bits must fit in the upper 32 bits of the int64 key.
@@ -51,6 +48,8 @@ ISECT_KEY_HIGH_BITS = 32
 SH_MAX_DEGREE = 3
 # Colours from SH are shifted by +0.5 and clamped at 0 ("apple-to-apple with Inria's CUDA backend").
 SH_COLOR_OFFSET = 0.5
+# 1 / (2 sqrt(pi)) as gsplat writes it: one float64 ulp below the correctly rounded value, the same float32 (the
+# compiled projection evaluates SH in float64, so this literal is part of the frozen numerics).
 SH_C0 = 0.2820947917738781
 SH_C1 = 0.48860251190292
 SH_C2 = (
