@@ -305,12 +305,12 @@ def supported_levels(height: int, width: int, wave: str = "db3", levels: int = 3
     return min(levels, dwt_max_level(min(height, width), filter_length(wave)))
 
 
-def dwt2(x: Tensor, wave: str = "db3", levels: int = 3, mode: str = "symmetric") -> WaveletCoeffs:
+def dwt2(x: Tensor, wave: str = "db3", levels: int = 3, mode: str = "symmetric", *, warn: bool = True) -> WaveletCoeffs:
     """Multi-level 2D DWT of x [B, C, H, W]; equals `pywt.wavedec2(x, wave, mode=mode, level=levels)` reversed.
 
     Returns WaveletCoeffs(approx [B, C, h, w], details finest first, each [B, C, 3, h_j, w_j] in (cH, cV, cD) order).
-    Levels the image cannot support (PyWavelets' `dwt_max_level` rule on min(H, W)) are left out with one warning;
-    with none left, approx is the image itself. float16/bfloat16 inputs are transformed in float32 (the output is
+    Levels the image cannot support (PyWavelets' `dwt_max_level` rule on min(H, W)) are left out with one warning
+    (none with ``warn=False``: a caller that warns once itself, as ``FrequencyLoss`` does); with none left, approx is the image itself. float16/bfloat16 inputs are transformed in float32 (the output is
     float32); other dtypes and any device are kept.
     """
     if x.dim() != 4:
@@ -324,7 +324,7 @@ def dwt2(x: Tensor, wave: str = "db3", levels: int = 3, mode: str = "symmetric")
     if height == 0 or width == 0:
         raise ValueError(f"dwt2 got an empty image of size {height}x{width}")
     kept = supported_levels(height, width, wave, levels)
-    if kept < levels:
+    if kept < levels and warn:
         warnings.warn(
             f"dwt2: a {height}x{width} image supports only {kept} of the {levels} requested {wave} levels "
             f"(filter length {flen}); the remaining {levels - kept} are left out",

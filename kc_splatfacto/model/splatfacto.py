@@ -17,6 +17,8 @@ import torch
 import torch.nn.functional as F
 
 from kc_splatfacto.data.outputs import Cameras
+from kc_splatfacto.losses.frequency import FrequencyLoss, FrequencyLossConfig
+from kc_splatfacto.render.constants import FAR_PLANE, NEAR_PLANE
 from kc_splatfacto.model.gaussians import init_gaussian_params
 from kc_splatfacto.model import ops
 from kc_splatfacto.model.strategy import DefaultStrategy, NoGaussiansLeftError
@@ -27,9 +29,8 @@ SCALE_REG_WEIGHT = 0.1
 """PhysGaussian scale regularization weight in Splatfacto"""
 SCALE_REG_EVERY = 10
 """Splatfacto evaluates the scale regularizer every 10th step only"""
-FREQUENCY_LOSS_FIELDS = ("wavelet_weight", "kc_weight", "cbc_weight", "wave", "wavelet_levels", "wavelet_mode",
-                         "wavelet_weighting", "kc_supervised", "cbc_supervised", "cbc_correlation")
-"""the config fields that build the FrequencyLoss (its parameters have the same names)"""
+_PAPER = FrequencyLossConfig()
+"""the paper's frequency-loss settings: the defaults of the model config's DWT fields (its weights default to 0)"""
 
 
 @dataclass(frozen=True)
@@ -114,19 +115,19 @@ class SplatfactoModelConfig:
     """weight of the kurtosis-concentration loss (KC-3DGS: 1e-5)"""
     cbc_weight: float = 0.0
     """weight of the cross-band covariance loss (KC-3DGS: 1e-2)"""
-    wave: Literal["haar", "db1", "db2", "db3", "db4", "db5", "db6", "db7", "db8", "db9", "db10"] = "db3"
+    wave: Literal["haar", "db1", "db2", "db3", "db4", "db5", "db6", "db7", "db8", "db9", "db10"] = _PAPER.wave  # type: ignore[assignment]
     """orthogonal Daubechies wavelet of the DWT (KC-3DGS: db3)"""
-    wavelet_levels: int = 3
+    wavelet_levels: int = _PAPER.wavelet_levels
     """DWT levels (fewer where the image is too small for them, with a warning)"""
-    wavelet_mode: Literal["symmetric", "reflect", "zero", "periodization"] = "symmetric"
+    wavelet_mode: Literal["symmetric", "reflect", "zero", "periodization"] = _PAPER.wavelet_mode  # type: ignore[assignment]
     """DWT boundary extension (pywt's names; docs/losses.md measures why symmetric)"""
-    wavelet_weighting: Literal["paper", "fine", "uniform"] = "paper"
+    wavelet_weighting: Literal["paper", "fine", "uniform"] = _PAPER.wavelet_weighting  # type: ignore[assignment]
     """per-level weights of the wavelet L1: 'paper' 2^j (j=1 finest), 'fine' 2^(J-j+1), 'uniform' 1"""
-    kc_supervised: bool = True
+    kc_supervised: bool = _PAPER.kc_supervised
     """KC compares the render's band kurtosis with the GT's (False: the unsupervised spread of the render alone)"""
-    cbc_supervised: bool = True
+    cbc_supervised: bool = _PAPER.cbc_supervised
     """CBC compares the render's cross-band covariance with the GT's (False: the render's alone)"""
-    cbc_correlation: bool = False
+    cbc_correlation: bool = _PAPER.cbc_correlation
     """CBC on correlations instead of covariances (the 'scaled CBC' ablation)"""
 
     def scaled(self, steps: int) -> int:
@@ -145,6 +146,41 @@ class SplatfactoModelConfig:
             sh_degree_interval=self.scaled(self.sh_degree_interval),
             stop_screen_size_at=self.scaled(self.stop_screen_size_at),
             stop_split_at=self.scaled(self.stop_split_at),
+        )
+
+    def frequency_loss_config(self) -> FrequencyLossConfig:
+        """The wavelet/KC/CBC settings of this model (its fields of the same names)."""
+        return FrequencyLossConfig(
+            wavelet_weight=self.wavelet_weight, kc_weight=self.kc_weight, cbc_weight=self.cbc_weight, wave=self.wave,
+            wavelet_levels=self.wavelet_levels, wavelet_mode=self.wavelet_mode,
+            wavelet_weighting=self.wavelet_weighting, kc_supervised=self.kc_supervised,
+            cbc_supervised=self.cbc_supervised, cbc_correlation=self.cbc_correlation,
+        )
+
+    def density_strategy(self, num_train_data: int) -> DefaultStrategy:
+        """Density control as Splatfacto 1.1.5 configures gsplat's ``DefaultStrategy`` from these fields (step counts
+        after ``steps_scale``); ``num_train_data`` sets the pause after each opacity reset."""
+        schedule = self.step_schedule()
+        refine_every = schedule.refine_every
+        reset_every = schedule.reset_alpha_every
+        return DefaultStrategy(
+            prune_opa=self.cull_alpha_thresh,
+            grow_grad2d=self.densify_grad_thresh,
+            grow_scale3d=self.densify_size_thresh,
+            grow_scale2d=self.split_screen_size,
+            prune_scale3d=self.cull_scale_thresh,
+            prune_scale2d=self.cull_screen_size,
+            refine_scale2d_stop_iter=schedule.stop_screen_size_at,
+            refine_start_iter=schedule.warmup_length,
+            refine_stop_iter=schedule.stop_split_at,
+            reset_every=reset_every,
+            refine_every=refine_every,
+            # Splatfacto waits one pass over the training images after a reset; under heavy step compression that
+            # pass could outlast the reset period, so it is capped at half of it.
+            pause_refine_after_reset=min(int(num_train_data) + refine_every, reset_every // 2),
+            absgrad=self.use_absgrad,
+            n_split_samples=self.n_split_samples,
+            max_gaussians=self.max_num_gaussians,
         )
 
     def setup(
@@ -235,32 +271,12 @@ class SplatfactoModel(torch.nn.Module):
             num_random=config.num_random,
             random_scale=config.random_scale,
         )
-        refine_every = schedule.refine_every
-        reset_every = schedule.reset_alpha_every
-        self.strategy = DefaultStrategy(
-            prune_opa=config.cull_alpha_thresh,
-            grow_grad2d=config.densify_grad_thresh,
-            grow_scale3d=config.densify_size_thresh,
-            grow_scale2d=config.split_screen_size,
-            prune_scale3d=config.cull_scale_thresh,
-            prune_scale2d=config.cull_screen_size,
-            refine_scale2d_stop_iter=schedule.stop_screen_size_at,
-            refine_start_iter=schedule.warmup_length,
-            refine_stop_iter=schedule.stop_split_at,
-            reset_every=reset_every,
-            refine_every=refine_every,
-            # Splatfacto waits one pass over the training images after a reset; under heavy step compression that
-            # pass could outlast the reset period, so it is capped at half of it.
-            pause_refine_after_reset=min(self.num_train_data + refine_every, reset_every // 2),
-            absgrad=config.use_absgrad,
-            n_split_samples=config.n_split_samples,
-            max_gaussians=config.max_num_gaussians,
-        )
+        self.strategy = config.density_strategy(self.num_train_data)
         self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene_scale)
         self.step = 0
         self.info: dict[str, Any] = {}
         self.register_buffer("background_color", self._fixed_background(), persistent=False)
-        self._frequency_loss = None
+        self._frequency_loss: FrequencyLoss | None = None
         self._wavelet_targets: dict[tuple[int, int], Any] = {}
 
     # ----------------------------------------------------------------------------------------------- parameters
@@ -374,8 +390,8 @@ class SplatfactoModel(torch.nn.Module):
             width=width,
             height=height,
             sh_degree=sh_degree,
-            near_plane=0.01,
-            far_plane=1e10,
+            near_plane=NEAR_PLANE,
+            far_plane=FAR_PLANE,
             render_mode=render_mode,
             rasterize_mode=self.config.rasterize_mode,
             absgrad=self.strategy.absgrad,
@@ -438,15 +454,13 @@ class SplatfactoModel(torch.nn.Module):
 
     # ----------------------------------------------------------------------------------------------- losses
     @property
-    def frequency_loss(self):
-        """KC-3DGS's wavelet/KC/CBC module, built on first use (None when every weight is zero)."""
-        cfg = self.config
-        if cfg.wavelet_weight == 0 and cfg.kc_weight == 0 and cfg.cbc_weight == 0:
-            return None
+    def frequency_loss(self) -> FrequencyLoss | None:
+        """KC-3DGS's wavelet/KC/CBC module, built from the config on first use (None when every weight is zero)."""
         if self._frequency_loss is None:
-            from kc_splatfacto.losses.frequency import FrequencyLoss
-
-            self._frequency_loss = FrequencyLoss(**{name: getattr(cfg, name) for name in FREQUENCY_LOSS_FIELDS})
+            settings = self.config.frequency_loss_config()
+            if not settings.active:
+                return None
+            self._frequency_loss = settings.setup()
         return self._frequency_loss
 
     def wavelet_target(self, gt_bchw: torch.Tensor, image_idx: int | None) -> Any:
