@@ -10,14 +10,21 @@ CPU, in a temporary folder. Prints one line: ``<method> <steps> steps <threads> 
 (<Gaussians> Gaussians, <seconds> s)``. The reference hashes of the current numerics are in docs/training.md.
 """
 
+import argparse
 import os
+import sys
 
-import kc_splatfacto  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads)
+if __name__ == "__main__":  # the thread count must be in the environment before torch and numba load
+    _threads = argparse.ArgumentParser(add_help=False)
+    _threads.add_argument("--threads", type=int, default=None)
+    _known, _ = _threads.parse_known_args()
+    if _known.threads:
+        os.environ["OMP_NUM_THREADS"] = os.environ["NUMBA_NUM_THREADS"] = str(_known.threads)
 
-import argparse  # noqa: E402
+import kc_splatfacto  # noqa: E402,F401  (sets OMP_WAIT_POLICY before torch loads)
+
 import copy  # noqa: E402
 import hashlib  # noqa: E402
-import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -51,7 +58,8 @@ def main() -> int:
     parser.add_argument("--scene", type=Path, default=SHARED_DATA / "castle-P30")
     parser.add_argument("--downscale", type=int, default=4)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--threads", type=int, default=None, help="torch/numba threads (default: torch's)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch and numba threads (set in the environment before they load; default: all cores)")
     args = parser.parse_args()
     if not args.scene.is_dir():
         print(f"scene {args.scene} not found (set KC_SHARED_DATA to the shared/data folder)", file=sys.stderr)
@@ -60,8 +68,6 @@ def main() -> int:
     if args.method not in methods:
         print(f"unknown method {args.method}; registered: {', '.join(methods)}", file=sys.stderr)
         return 1
-    if args.threads:
-        torch.set_num_threads(args.threads)
     config = copy.deepcopy(methods[args.method].config)
     config.pipeline.datamanager.data = args.scene
     config.pipeline.datamanager.dataparser.downscale_factor = args.downscale

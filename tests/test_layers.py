@@ -8,7 +8,7 @@ from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "kc_splatfacto"
 #: lower index = lower layer; a module may import its own layer and lower ones (registry/atomic/metrics: leaves)
-LAYERS = ["atomic", "registry", "metrics", "render", "losses", "data", "model", "engine", "analysis", "cli"]
+LAYERS = ["atomic", "registry", "metrics", "render", "losses", "data", "model", "engine", "analysis", "study", "cli"]
 
 
 def _module_imports(path: Path) -> set[str]:

@@ -32,9 +32,16 @@ METRICS = {"psnr": "higher", "ssim": "higher", "lpips": "lower"}
 METRIC_LABELS = {"psnr": "PSNR (dB)", "ssim": "SSIM", "lpips": "LPIPS"}
 #: Columns of the flat evaluation table, in order.
 EVAL_COLUMNS = (
-    "scene", "method", "seed", "step", "elapsed_s", "train_s", "psnr", "ssim", "lpips", "lpips_net", "num_images",
-    "run_dir",
+    "scene", "method", "seed", "step", "elapsed_s", "train_s", "train_cpu_s", "psnr", "ssim", "lpips", "lpips_net",
+    "lpips_vgg", "num_images", "run_dir",
 )
+#: Final-evaluation metrics compared in the paired tables (``lpips_vgg``: the last evaluation only).
+PAIRED_METRICS = {"psnr": "psnr_db", "ssim": "ssim_pct", "lpips": "lpips_pct", "lpips_vgg": "lpips_vgg_pct"}
+TIME_KEYS = {
+    "train_s": "training time (s, evaluation excluded)",
+    "train_cpu_s": "training CPU time (s, all threads, evaluation excluded)",
+    "elapsed_s": "wall-clock time (s)",
+}
 DEFAULT_TIME_KEY = "train_s"
 INTERVAL_LEVEL = 0.95
 """two-sided confidence level of the interval on a mean paired difference (Student t over seeds)"""
@@ -64,10 +71,12 @@ def eval_rows(records: Iterable[dict], scene: str, method: str, seed: int, run_d
                 "step": int(record["step"]),
                 "elapsed_s": float(record["elapsed_s"]),
                 "train_s": float(record["train_s"]),
+                "train_cpu_s": _number(record.get("train_cpu_s")),
                 "psnr": _number(record.get("psnr")),
                 "ssim": _number(record.get("ssim")),
                 "lpips": _number(record.get("lpips")),
                 "lpips_net": record.get("lpips_net") if record.get("lpips") is not None else None,
+                "lpips_vgg": _number(record.get("lpips_vgg")),
                 "num_images": record.get("num_images"),
                 "run_dir": str(run_dir),
             }
@@ -97,8 +106,8 @@ def read_rows_csv(path: str | Path) -> list[dict]:
             row: dict = dict(raw)
             for key in ("seed", "step"):
                 row[key] = int(row[key])
-            for key in ("elapsed_s", "train_s", "psnr", "ssim", "lpips"):
-                row[key] = float(row[key]) if row[key] not in ("", None) else None
+            for key in ("elapsed_s", "train_s", "train_cpu_s", "psnr", "ssim", "lpips", "lpips_vgg"):
+                row[key] = float(row[key]) if row.get(key) not in ("", None) else None
             row["num_images"] = int(row["num_images"]) if row.get("num_images") not in ("", None) else None
             row["lpips_net"] = row.get("lpips_net") or None
             rows.append(row)
@@ -131,8 +140,8 @@ def aggregate_curves(rows: Sequence[dict], metric: str, time_key: str = DEFAULT_
     Steps missing from some seed are left out (a mean over a changing set of seeds would jump); rows whose metric is
     None (e.g. LPIPS unavailable) are ignored, and a (scene, method) with no value at all gives no curve.
     """
-    if time_key not in ("train_s", "elapsed_s"):
-        raise ValueError(f"time_key must be 'train_s' or 'elapsed_s', got '{time_key}'")
+    if time_key not in TIME_KEYS:
+        raise ValueError(f"time_key must be one of {sorted(TIME_KEYS)}, got '{time_key}'")
     groups: dict[tuple[str, str], dict[int, dict[int, dict]]] = {}
     for row in rows:
         if row.get(metric) is None:
@@ -141,7 +150,9 @@ def aggregate_curves(rows: Sequence[dict], metric: str, time_key: str = DEFAULT_
     curves = []
     for (scene, method), by_seed in groups.items():
         seeds = sorted(by_seed)
-        common = sorted(set.intersection(*(set(steps) for steps in by_seed.values())))
+        common = sorted(set.intersection(*(
+            {step for step, row in steps.items() if row.get(time_key) is not None} for steps in by_seed.values()
+        )))
         if not common:
             continue
         values = np.array([[by_seed[s][step][metric] for step in common] for s in seeds], dtype=np.float64)
@@ -192,7 +203,7 @@ def plot_metric_vs_time(
             min(float(p.min()) for p in positive if p.size), 1e-9
         ) > 20:
             ax.set_xscale("log")
-        ax.set_xlabel("training time (s, evaluation excluded)" if time_key == "train_s" else "wall-clock time (s)")
+        ax.set_xlabel(TIME_KEYS[time_key])
         label = metric_label(metric, rows)
         ax.set_ylabel(label)
         ax.set_title(f"{scene}: {label} vs time (mean, min-max over seeds)", fontsize=9)
@@ -200,6 +211,78 @@ def plot_metric_vs_time(
         ax.legend(fontsize=8)
     path = save_figure(fig, path, dpi=120)
     return curves
+
+
+def paired_curves(rows: Sequence[dict], baseline: str, metric: str = "psnr", time_key: str = "train_cpu_s") -> list[dict]:
+    """Per method, the pooled paired difference to ``baseline`` at every evaluated step that all its pairs share.
+
+    Pairs are (scene, seed) where both the method and the baseline ran; at each step the difference is the method's
+    metric minus the baseline's at the same scene, seed and step (PSNR in dB, others as they are). Returns per
+    method: ``steps`` [T], ``mean`` [T] (over all pairs), ``low``/``high`` [T] (95 % t interval over pairs),
+    ``time`` and ``baseline_time`` [T] (mean ``time_key`` of the method's and the baseline's runs), ``pairs``.
+    """
+    index = {(r["scene"], r["method"], r["seed"], r["step"]): r for r in rows if r.get(metric) is not None}
+    out = []
+    for method in _ordered_methods(rows, baseline):
+        if method == baseline:
+            continue
+        pairs = sorted({(k[0], k[2]) for k in index if k[1] == method and any(
+            j[:3] == (k[0], baseline, k[2]) for j in index)})
+        if not pairs:
+            continue
+        steps = sorted(set.intersection(*(
+            {k[3] for k in index if (k[0], k[1], k[2]) == (scene, method, seed) and (scene, baseline, seed, k[3]) in index}
+            for scene, seed in pairs)))
+        if not steps:
+            continue
+        mean, low, high, time, base_time = [], [], [], [], []
+        for step in steps:
+            diffs = [index[(sc, method, se, step)][metric] - index[(sc, baseline, se, step)][metric] for sc, se in pairs]
+            mean.append(float(np.mean(diffs)))
+            interval = mean_interval(diffs) or (mean[-1], mean[-1])
+            low.append(interval[0])
+            high.append(interval[1])
+            times = [index[(sc, method, se, step)].get(time_key) for sc, se in pairs]
+            base_times = [index[(sc, baseline, se, step)].get(time_key) for sc, se in pairs]
+            time.append(float(np.mean(times)) if None not in times else float("nan"))
+            base_time.append(float(np.mean(base_times)) if None not in base_times else float("nan"))
+        out.append({"method": method, "metric": metric, "steps": np.array(steps), "mean": np.array(mean),
+                    "low": np.array(low), "high": np.array(high), "time": np.array(time),
+                    "baseline_time": np.array(base_time), "pairs": pairs})
+    return out
+
+
+def plot_pooled_vs_time(rows: Sequence[dict], baseline: str, path: str | Path, time_key: str = "train_cpu_s") -> Path | None:
+    """PNG of the pooled study against training time: per method, the paired PSNR difference to ``baseline``
+    (mean over every (scene, seed) pair, 95 % t band) at each evaluated step, drawn at the mean training time the
+    method's runs had reached at that step (so a slower method's curve is shifted right). None when nothing pairs."""
+    curves = paired_curves(rows, baseline, "psnr", time_key)
+    if not curves:
+        return None
+    plt = pyplot()
+    fig, (ax, cost) = plt.subplots(1, 2, figsize=(12, 4.2))
+    for i, curve in enumerate(curves):
+        color = plt.get_cmap("tab10")((i + 1) % 10)
+        scenes = sorted({p[0] for p in curve["pairs"]})
+        label = f"{curve['method']} ({len(curve['pairs'])} pairs, {len(scenes)} scenes)"
+        ax.plot(curve["time"], curve["mean"], "-o", ms=3, color=color, label=label)
+        ax.fill_between(curve["time"], curve["low"], curve["high"], color=color, alpha=0.2, lw=0)
+        ratio = curve["time"] / curve["baseline_time"]
+        cost.plot(curve["steps"], ratio, "-o", ms=3, color=color, label=curve["method"])
+    ax.axhline(0.0, color="k", lw=0.8)
+    ax.set_xscale("log")
+    ax.set_xlabel(f"{TIME_KEYS[time_key]}, mean over the method's runs")
+    ax.set_ylabel(f"PSNR - {baseline} (dB, same scene and seed)")
+    ax.set_title("pooled over scenes: paired PSNR difference (mean, 95 % t band over pairs)", fontsize=9)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    cost.axhline(1.0, color="k", lw=0.8)
+    cost.set_xlabel("training step")
+    cost.set_ylabel(f"training time / {baseline}'s at the same step")
+    cost.set_title(f"cost: {TIME_KEYS[time_key].split(' (')[0]} ratio, pooled", fontsize=9)
+    cost.grid(True, alpha=0.3)
+    cost.legend(fontsize=8)
+    return save_figure(fig, path, dpi=120)
 
 
 def lpips_networks(rows: Sequence[dict]) -> list[str]:
@@ -322,9 +405,10 @@ def paired_deltas(rows: Sequence[dict], baseline: str) -> list[dict]:
     """Per (scene, method), the final-metric differences to ``baseline`` run with the same seed.
 
     Runs that share a seed share the initial Gaussians and the image order, so pairing removes the seed-to-seed
-    variation that dominates short runs. Returns ``seeds``, ``psnr_db`` (per-seed differences, dB), ``ssim_pct``
-    and ``lpips_pct`` (relative, %; None where unavailable), with their ``_mean`` and ``_interval`` (95 % Student t
-    interval of the mean over seeds, None with fewer than two seeds: :func:`mean_interval`).
+    variation that dominates short runs. Returns ``seeds``, ``psnr_db`` (per-seed differences, dB), ``ssim_pct``,
+    ``lpips_pct`` and ``lpips_vgg_pct`` (relative, %; None where unavailable), with their ``_mean`` and
+    ``_interval`` (95 % Student t interval of the mean over seeds, None with fewer than two seeds:
+    :func:`mean_interval`).
     """
     finals = {(r["scene"], r["method"], r["seed"]): r for r in final_rows(rows)}
     out = []
@@ -335,15 +419,87 @@ def paired_deltas(rows: Sequence[dict], baseline: str) -> list[dict]:
         if not seeds:
             continue
         entry: dict = {"scene": scene, "method": method, "seeds": seeds}
-        for key, delta in (("psnr_db", _diff), ("ssim_pct", _rel_pct), ("lpips_pct", _rel_pct)):
-            metric = key.split("_")[0]
-            values = [delta(finals[(scene, method, s)][metric], finals[(scene, baseline, s)][metric]) for s in seeds]
+        for metric, key in PAIRED_METRICS.items():
+            delta = _diff if metric == "psnr" else _rel_pct
+            values = [delta(finals[(scene, method, s)].get(metric), finals[(scene, baseline, s)].get(metric))
+                      for s in seeds]
             entry[key] = values
             present = [v for v in values if v is not None]
             entry[f"{key}_mean"] = float(np.mean(present)) if present else None
             entry[f"{key}_interval"] = mean_interval(present)
         out.append(entry)
     return out
+
+
+def pooled_deltas(paired: Sequence[dict]) -> list[dict]:
+    """Per method, two estimates pooled over the scenes of :func:`paired_deltas`' entries:
+
+    - ``all_pairs``: the mean of every (scene, seed) paired difference, with the t interval over all pairs (ddof 1,
+      n - 1 degrees of freedom). It weights scenes by their number of pairs and treats pairs as independent draws.
+    - ``per_scene``: the mean of the per-scene mean differences (each scene weighted equally: the average effect
+      over these scenes), its standard error ``sqrt(sum_k s_k^2 / n_k) / K`` from the within-scene sample variances,
+      and a t interval with Welch-Satterthwaite degrees of freedom. It does not generalise to other scenes: the
+      between-scene spread is reported as ``scene_means`` beside it.
+    """
+    from scipy.stats import t as student_t
+
+    out = []
+    for method in dict.fromkeys(e["method"] for e in paired):
+        entries = [e for e in paired if e["method"] == method]
+        result: dict = {"method": method, "scenes": [e["scene"] for e in entries],
+                        "num_pairs": sum(len(e["seeds"]) for e in entries)}
+        for key in PAIRED_METRICS.values():
+            per_scene = [np.asarray([v for v in e.get(key) or () if v is not None], dtype=np.float64) for e in entries]
+            per_scene = [v for v in per_scene if v.size]
+            if not per_scene:
+                continue
+            everything = np.concatenate(per_scene)
+            result[f"{key}_all_pairs"] = float(everything.mean())
+            result[f"{key}_all_pairs_interval"] = mean_interval(everything.tolist())
+            means = np.array([v.mean() for v in per_scene])
+            result[f"{key}_scene_means"] = means.tolist()
+            result[f"{key}_per_scene"] = float(means.mean())
+            if all(v.size >= 2 for v in per_scene):
+                shares = np.array([v.var(ddof=1) / v.size for v in per_scene])
+                se = float(np.sqrt(shares.sum()) / len(per_scene))
+                dof = float(shares.sum() ** 2 / np.sum(shares ** 2 / np.array([v.size - 1 for v in per_scene])))
+                half = float(student_t.ppf((1 + INTERVAL_LEVEL) / 2, dof) * se)
+                result[f"{key}_per_scene_interval"] = (float(means.mean()) - half, float(means.mean()) + half)
+            else:
+                result[f"{key}_per_scene_interval"] = None
+        out.append(result)
+    return out
+
+
+def markdown_pooled_table(pooled: Sequence[dict], baseline: str) -> str:
+    """Markdown of :func:`pooled_deltas`."""
+    if not pooled:
+        return ""
+
+    def cell(entry: dict, key: str, kind: str, digits: int) -> str:
+        value = entry.get(f"{key}_{kind}")
+        if value is None:
+            return "n/a"
+        interval = entry.get(f"{key}_{kind}_interval")
+        ci = f" [{interval[0]:+.{digits}f}, {interval[1]:+.{digits}f}]" if interval else ""
+        return f"{value:+.{digits}f}{ci}"
+
+    lines = [
+        f"Pooled over scenes, differences to `{baseline}` at the same seed (final evaluation), "
+        f"{100 * INTERVAL_LEVEL:.0f} % t intervals. *All pairs*: the mean over every (scene, seed) pair, t over "
+        "pairs. *Per scene*: the mean of the per-scene means (scenes weighted equally), standard error from the "
+        "within-scene variances, Welch-Satterthwaite degrees of freedom.",
+        "",
+        "| method | scenes | pairs | estimate | ΔPSNR (dB) | ΔSSIM (%) | ΔLPIPS alex (%) | ΔLPIPS VGG (%) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for e in pooled:
+        for kind, name in (("all_pairs", "all pairs"), ("per_scene", "per scene")):
+            lines.append(
+                f"| {e['method']} | {len(e['scenes'])} | {e['num_pairs']} | {name} | {cell(e, 'psnr_db', kind, 2)} | "
+                f"{cell(e, 'ssim_pct', kind, 2)} | {cell(e, 'lpips_pct', kind, 2)} | {cell(e, 'lpips_vgg_pct', kind, 2)} |"
+            )
+    return "\n".join(lines) + "\n"
 
 
 def markdown_paired_table(paired: Sequence[dict], baseline: str) -> str:
@@ -355,15 +511,15 @@ def markdown_paired_table(paired: Sequence[dict], baseline: str) -> str:
         if mean is None:
             return "n/a | n/a"
         ci = f" [{interval[0]:+.{digits}f}, {interval[1]:+.{digits}f}]" if interval is not None else ""
-        return " / ".join(f"{v:+.{digits}f}" for v in values) + f" | {mean:+.{digits}f}{ci}"
+        return " / ".join("n/a" if v is None else f"{v:+.{digits}f}" for v in values) + f" | {mean:+.{digits}f}{ci}"
 
     lines = [
         f"Per-seed differences to `{baseline}` at the same seed (final evaluation); mean with its "
         f"{100 * INTERVAL_LEVEL:.0f} % Student t interval over seeds in brackets:",
         "",
         "| scene | method | seeds | ΔPSNR per seed (dB) | mean [CI] | ΔSSIM per seed (%) | mean [CI] "
-        "| ΔLPIPS per seed (%) | mean [CI] |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| ΔLPIPS alex per seed (%) | mean [CI] | ΔLPIPS VGG per seed (%) | mean [CI] |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for e in paired:
         seeds = " / ".join(str(s) for s in e["seeds"])
@@ -371,7 +527,8 @@ def markdown_paired_table(paired: Sequence[dict], baseline: str) -> str:
             f"| {e['scene']} | {e['method']} | {seeds} | "
             f"{cells(e['psnr_db'], e['psnr_db_mean'], 2, e.get('psnr_db_interval'))} | "
             f"{cells(e['ssim_pct'], e['ssim_pct_mean'], 2, e.get('ssim_pct_interval'))} | "
-            f"{cells(e['lpips_pct'], e['lpips_pct_mean'], 2, e.get('lpips_pct_interval'))} |"
+            f"{cells(e['lpips_pct'], e['lpips_pct_mean'], 2, e.get('lpips_pct_interval'))} | "
+            f"{cells(e.get('lpips_vgg_pct', []), e.get('lpips_vgg_pct_mean'), 2, e.get('lpips_vgg_pct_interval'))} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -398,8 +555,17 @@ def write_report(
     paths["table"] = out_dir / "results.md"
     table = markdown_table(summary, baseline, lpips_note, lpips_label=metric_label("lpips", rows))
     if baseline:
-        paired = markdown_paired_table(paired_deltas(rows, baseline), baseline)
-        table += ("\n" + paired) if paired else ""
+        paired = paired_deltas(rows, baseline)
+        table += ("\n" + markdown_paired_table(paired, baseline)) if paired else ""
+        if len({e["scene"] for e in paired}) > 1:
+            pooled = pooled_deltas(paired)
+            table += "\n" + markdown_pooled_table(pooled, baseline)
+            paths["pooled"] = out_dir / "pooled.json"
+            paths["pooled"].write_text(json.dumps({"paired": paired, "pooled": pooled}, indent=1))
+        if any(r.get("train_cpu_s") is not None for r in rows):
+            png = plot_pooled_vs_time(rows, baseline, out_dir / "pooled_psnr_vs_time.png")
+            if png is not None:
+                paths["plot_pooled"] = png
     paths["table"].write_text(table)
     for metric in METRICS:
         png = out_dir / f"{metric}_vs_time.png"

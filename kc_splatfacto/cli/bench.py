@@ -15,6 +15,13 @@ checkpoint starts again (its old log kept as ``metrics.interrupted.jsonl``). A r
 ``config.yml`` holds another model config, seed, optimizer, scene or dataparser setting than the command asks for is
 an error, not silently mixed in.
 
+Runs execute one after another in this process (``--workers 1``, the default), or as Ray tasks
+(:mod:`kc_splatfacto.study.runners`): ``--workers N`` starts an embedded local Ray cluster running N at once,
+``--ray-address`` (or ``RAY_ADDRESS``) submits them to a running cluster; ``--threads`` sets each run's torch and
+numba threads. The run folders, the report and the numbers are the same either way (``docs/study.md``). A failed run
+is reported in ``runs.json`` and on stderr while the others go on (exit status 1); Ctrl-C keeps every finished run
+(exit status 130) and ``--resume`` continues.
+
 Example (the committed castle-P30 result)::
 
     kc-bench --data ../shared/data/castle-P30 --downscale-factor 4 --methods splatfacto kc-splatfacto \\
@@ -28,16 +35,21 @@ from __future__ import annotations
 import argparse
 import copy
 import json
+import os
 import shlex
 import sys
-import time
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
+from kc_splatfacto.analysis.report import eval_rows, write_report
+from kc_splatfacto.atomic import atomic_write_text
 from kc_splatfacto.engine.optimizers import SPLATFACTO_SCHEDULE_STEPS  # ``--steps-scale auto``: budget / this
 from kc_splatfacto.errors import UserError
+from kc_splatfacto.registry import discover_methods
+from kc_splatfacto.study.runners import RayRunner, SerialRunner, StudyInterrupted
+from kc_splatfacto.study.runs import RunSpec, check_same_settings
 
 
 class BenchArgumentError(UserError, ValueError):
@@ -135,94 +147,9 @@ def build_run_config(
     return config
 
 
-def check_same_settings(run_dir: Path, config: Any) -> None:
-    """A run folder the study would reuse or continue must have been trained with the settings ``config`` asks for:
-    model, seed, optimizers, scene and dataparser with its settings (e.g. the downscale factor), as its
-    ``config.yml`` records them. Anything else is a :class:`BenchArgumentError` naming the folder and what differs,
-    never a finished run of another setting silently reported as this one."""
-    import dataclasses
-
-    from kc_splatfacto.engine.config import load_config
-    from kc_splatfacto.engine.run_guard import differences
-
-    saved_path = run_dir / "config.yml"
-    if not saved_path.is_file():
-        return
-    saved = load_config(saved_path)
-    mismatch = [
-        name for name, a, b in (
-            ("pipeline.model", dataclasses.asdict(saved.pipeline.model), dataclasses.asdict(config.pipeline.model)),
-            ("machine.seed", saved.machine.seed, config.machine.seed),
-            ("optimizers", dataclasses.asdict(saved.optimizers), dataclasses.asdict(config.optimizers)),
-        ) if a != b
-    ] + differences(saved, config, parser_settings=True)
-    if mismatch:
-        raise BenchArgumentError(
-            f"--resume: {run_dir} was trained with another {', '.join(mismatch)} than this command asks for; "
-            f"rerun with the original command, or pass another --runs-dir"
-        )
-
-
-def resume_point(run_dir: Path, config: Any) -> Path | None:
-    """Prepare an interrupted run folder for ``--resume``: the checkpoint to continue from, or None (start again).
-
-    The folder must hold a run of the same settings (:func:`check_same_settings`). Records logged after the
-    checkpoint's step are cut from ``metrics.jsonl`` (atomically), since the resumed run logs them again; without a
-    checkpoint the log is moved aside to ``metrics.interrupted.jsonl`` and the run starts from scratch.
-    """
-    from kc_splatfacto.atomic import atomic_write_text
-    from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, CHECKPOINT_PATTERN, list_checkpoints
-
-    check_same_settings(run_dir, config)
-    log = run_dir / "metrics.jsonl"
-    checkpoints = list_checkpoints(run_dir / CHECKPOINT_DIR)
-    if not checkpoints:
-        if log.is_file():
-            log.replace(run_dir / "metrics.interrupted.jsonl")
-        return None
-    step = int(CHECKPOINT_PATTERN.match(checkpoints[-1].name).group(1))
-    if log.is_file():
-        kept = []
-        for line in log.read_text().splitlines():
-            if not line.strip():
-                continue
-            try:
-                record = json.loads(line)
-            except json.JSONDecodeError:  # a line cut by the interruption
-                continue
-            if int(record.get("step", 0)) <= step:
-                kept.append(line)
-        atomic_write_text(log, "".join(line + "\n" for line in kept))
-    return checkpoints[-1].parent
-
-
-def _finished(run_dir: Path, max_steps: int) -> bool:
-    from kc_splatfacto.engine.metrics_log import read_metrics
-
-    log = run_dir / "metrics.jsonl"
-    if not log.is_file():
-        return False
-    try:
-        records = read_metrics(log)
-    except ValueError:
-        return False
-    return any(r.get("kind") == "eval" and int(r.get("step", -1)) == max_steps for r in records)
-
-
-def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
-    from kc_splatfacto.analysis.report import eval_rows, write_report
-    from kc_splatfacto.engine.metrics_log import read_metrics
-    from kc_splatfacto.engine.trainer import Trainer
-    from kc_splatfacto.registry import discover_methods
-
-    methods_available = discover_methods()
-    unknown = [m for m in args.methods if m not in methods_available]
-    if unknown:
-        raise BenchArgumentError(f"unknown method(s) {unknown}; registered: {', '.join(methods_available) or 'none'}")
-    out_dir = Path(args.output_dir)
-    runs_dir = Path(args.runs_dir) if args.runs_dir else out_dir / "runs"
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "command.txt").write_text("kc-bench " + " ".join(shlex.quote(a) for a in argv) + "\n")
+def plan_runs(args: argparse.Namespace, methods_available: dict, runs_dir: Path) -> list[RunSpec]:
+    """Every run of the study, seed-major (seed, then scene, then method): a study stopped part-way has the same
+    number of paired seeds on every scene. Each run's config is built (and its overrides checked) before any runs."""
     eval_steps = evaluation_steps(args.max_num_iterations, args.num_evals, args.eval_at_steps)
     if args.steps_scale == "auto":
         steps_scale = args.max_num_iterations / SPLATFACTO_SCHEDULE_STEPS
@@ -230,58 +157,173 @@ def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
         steps_scale = None
     else:
         steps_scale = float(args.steps_scale)
-    rows: list[dict] = []
-    runs: list[dict] = []
-    lpips_note = None
-    baseline = args.baseline if args.baseline in args.methods else None
-    paths: dict[str, Path] = {}
     downscale = scene_downscale_factors(args.data, args.downscale_factor)
-    # seed-major: a study stopped part-way has the same number of paired seeds on every scene
+    specs = []
     for seed in args.seeds:
         for data in args.data:
             scene = Path(str(data)).name if str(data) != "demo" else "demo"
             for method in args.methods:
                 config = build_run_config(
-                    methods_available[method].config, method=method, data=Path(data), seed=seed,
-                    max_steps=args.max_num_iterations, eval_steps=eval_steps, runs_dir=runs_dir,
+                    methods_available[method].config, method=method,
+                    data=Path(data) if str(data) == "demo" else Path(data).absolute(), seed=seed,
+                    max_steps=args.max_num_iterations, eval_steps=eval_steps, runs_dir=runs_dir.absolute(),
                     experiment=scene, downscale_factor=downscale[str(data)], steps_scale=steps_scale,
                     device=args.device, overrides=args.set,
                 )
                 config.steps_per_save = args.steps_per_save if args.steps_per_save > 0 else args.max_num_iterations
-                expected_dir = Path(runs_dir) / scene / method / f"seed{seed}"
-                start = time.perf_counter()
-                status = "trained"
-                if args.resume and _finished(expected_dir, args.max_num_iterations):
-                    check_same_settings(expected_dir, config)
-                    run_dir, status = expected_dir, "reused"
-                else:
-                    if args.resume and expected_dir.is_dir():
-                        config.load_dir = resume_point(expected_dir, config)
-                        status = "resumed" if config.load_dir is not None else "restarted"
-                    run_dir = Path(Trainer(config).train())
-                records = read_metrics(run_dir / "metrics.jsonl")
-                new_rows = eval_rows(records, scene, method, seed, run_dir)
-                rows += new_rows
-                lpips_note = lpips_note or next(
-                    (r.get("lpips_unavailable") for r in records if r.get("kind") == "eval" and r.get("lpips_unavailable")),
-                    None,
-                )
-                final = new_rows[-1] if new_rows else {}
-                runs.append({"scene": scene, "method": method, "seed": seed, "run_dir": str(run_dir), "status": status,
-                             "wall_s": time.perf_counter() - start})
-                print(
-                    f"[kc-bench] {scene} {method} seed {seed}: {status} in {time.perf_counter() - start:.0f}s, "
-                    f"final step {final.get('step')} PSNR {final.get('psnr')} SSIM {final.get('ssim')} "
-                    f"train_s {final.get('train_s')}",
-                    flush=True,
-                )
-                (out_dir / "runs.json").write_text(json.dumps(runs, indent=1))
-                paths = write_report(rows, out_dir, baseline=baseline, time_key=args.time_key, lpips_note=lpips_note)
-    paths.update(write_kurtosis_gap_plots(runs, out_dir))
-    paths.update(write_gradient_share_plots(runs, out_dir))
+                label_dir = runs_dir / scene / method / f"seed{seed}"
+                specs.append(RunSpec(index=len(specs), scene=scene, method=method, seed=seed,
+                                     run_dir=label_dir.absolute(), config=config, max_steps=args.max_num_iterations,
+                                     label_dir=str(label_dir)))
+    return specs
+
+
+def set_threads(threads: int) -> None:
+    """Run this process's torch ops and numba kernels on ``threads`` threads (the environment for pools not yet
+    started, the runtime setters for those that are; numba cannot go above the count its pool started with)."""
+    os.environ.setdefault("OMP_NUM_THREADS", str(threads))
+    os.environ.setdefault("NUMBA_NUM_THREADS", str(threads))
+    import numba
+    import torch
+
+    torch.set_num_threads(threads)
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+
+
+def choose_runner(args: argparse.Namespace):
+    """The serial in-process runner (``--workers 1``, no cluster), or Ray: an embedded local cluster of
+    ``--workers`` runs, or the cluster at ``--ray-address`` / ``RAY_ADDRESS``."""
+    address = args.ray_address or os.environ.get("RAY_ADDRESS") or None
+    if args.workers < 1:
+        raise BenchArgumentError(f"--workers must be at least 1, got {args.workers}")
+    if args.threads is not None and args.threads < 1:
+        raise BenchArgumentError(f"--threads must be at least 1, got {args.threads}")
+    if address is None and args.workers == 1:
+        if args.threads is not None:
+            set_threads(args.threads)
+        return SerialRunner()
+    threads = args.threads or (1 if address else max(1, (os.cpu_count() or 1) // args.workers))
+    return RayRunner(workers=args.workers, threads=threads, address=address,
+                     gpus_per_run=1 if str(args.device).startswith("cuda") else 0)
+
+
+class Study:
+    """The results of a study's runs as they arrive, and its report, rewritten after every run in the runs' planned
+    order (whatever order they finished in), so an interrupted study leaves a report of what it finished."""
+
+    def __init__(self, specs: Sequence[RunSpec], out_dir: Path, args: argparse.Namespace):
+        self.specs, self.out_dir, self.args = list(specs), out_dir, args
+        self.results: dict[int, dict] = {}
+        self.baseline = args.baseline if args.baseline in args.methods else None
+        self.paths: dict[str, Path] = {}
+
+    def add(self, result: dict) -> None:
+        self.results[result["index"]] = result
+        self.write()
+
+    def finished_runs(self) -> list[dict]:
+        runs = []
+        for spec in self.specs:
+            result = self.results.get(spec.index)
+            if result is None:
+                continue
+            runs.append({"scene": spec.scene, "method": spec.method, "seed": spec.seed,
+                         "run_dir": spec.label_dir if result["run_dir"] == str(spec.run_dir) else result["run_dir"],
+                         "status": result["status"], "wall_s": result["wall_s"],
+                         **({"error": result["error"]} if result.get("error") else {})})
+        return runs
+
+    def write(self) -> None:
+        runs = self.finished_runs()
+        atomic_write_text(self.out_dir / "runs.json", json.dumps(runs, indent=1))
+        rows, lpips_note = [], None
+        for run, spec in zip(runs, (s for s in self.specs if s.index in self.results)):
+            records = self.results[spec.index]["records"]
+            rows += eval_rows(records, spec.scene, spec.method, spec.seed, run["run_dir"])
+            lpips_note = lpips_note or next(
+                (r.get("lpips_unavailable") for r in records if r.get("kind") == "eval" and r.get("lpips_unavailable")),
+                None,
+            )
+        if rows:
+            self.paths = write_report(rows, self.out_dir, baseline=self.baseline, time_key=self.args.time_key,
+                                      lpips_note=lpips_note)
+            self.paths.update(write_per_view(self._final_views(), self.out_dir))
+
+    def _final_views(self) -> list[dict]:
+        views = []
+        for spec in self.specs:
+            result = self.results.get(spec.index)
+            final = next((r for r in reversed(result["records"]) if r.get("kind") == "eval"
+                          and r.get("step") == spec.max_steps), None) if result else None
+            for view in (final or {}).get("per_image", []):
+                views.append({"scene": spec.scene, "method": spec.method, "seed": spec.seed, "step": final["step"],
+                              **view})
+        return views
+
+    def failures(self) -> list[dict]:
+        return [r for r in self.finished_runs() if r["status"] == "failed"]
+
+
+def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
+    methods_available = discover_methods()
+    unknown = [m for m in args.methods if m not in methods_available]
+    if unknown:
+        raise BenchArgumentError(f"unknown method(s) {unknown}; registered: {', '.join(methods_available) or 'none'}")
+    out_dir = Path(args.output_dir)
+    runs_dir = Path(args.runs_dir) if args.runs_dir else out_dir / "runs"
+    specs = plan_runs(args, methods_available, runs_dir)
+    if args.resume:  # every folder of another setting refused before any run starts
+        for spec in specs:
+            check_same_settings(spec.run_dir, spec.config)
+    runner = choose_runner(args)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "command.txt").write_text("kc-bench " + " ".join(shlex.quote(a) for a in argv) + "\n")
+    study = Study(specs, out_dir, args)
+    try:
+        runner.run(specs, study.add, resume=args.resume)
+    finally:  # also after Ctrl-C: the plots of what finished
+        runs = [r for r in study.finished_runs() if r["status"] != "failed"]
+        if runs:
+            study.paths.update(write_kurtosis_gap_plots(runs, out_dir))
+            study.paths.update(write_gradient_share_plots(runs, out_dir))
+    paths = dict(study.paths)
     paths["command"] = out_dir / "command.txt"
     paths["runs"] = out_dir / "runs.json"
+    failures = study.failures()
+    if failures:
+        lines = "\n".join(f"  {f['scene']} {f['method']} seed {f['seed']} ({f['run_dir']}): {f['error']}"
+                          for f in failures)
+        print(f"[kc-bench] {len(failures)} of {len(specs)} runs failed (the report holds the others):\n{lines}",
+              file=sys.stderr, flush=True)
+        raise StudyRunsFailed(len(failures))
     return paths
+
+
+class StudyRunsFailed(Exception):
+    """Some runs failed (each was reported with its folder and error); the others finished and are reported."""
+
+    def __init__(self, count: int):
+        super().__init__(f"{count} runs failed")
+        self.count = count
+
+
+def write_per_view(views: Sequence[dict], out_dir: Path) -> dict[str, Path]:
+    """``per_view.csv``: every run's final evaluation per test view (PSNR, SSIM, LPIPS with AlexNet and VGG16)."""
+    if not views:
+        return {}
+    columns = {"scene": "scene", "method": "method", "seed": "seed", "step": "step", "view": "index",
+               "image": "image", "psnr": "psnr", "ssim": "ssim", "lpips_alex": "lpips", "lpips_vgg": "lpips_vgg"}
+    lines = [",".join(columns)]
+    for view in views:
+        cells = []
+        for key in columns.values():
+            value = view.get(key)
+            text = "" if value is None else (repr(value) if isinstance(value, float) else str(value))
+            cells.append(f'"{text}"' if "," in text else text)
+        lines.append(",".join(cells))
+    path = out_dir / "per_view.csv"
+    atomic_write_text(path, "\n".join(lines) + "\n")
+    return {"per_view": path}
 
 
 def _lowest_seed_records(runs: Sequence[dict]):
@@ -357,8 +399,9 @@ def build_parser() -> argparse.ArgumentParser:
              "overfits, see docs/results/README.md), or a number",
     )
     parser.add_argument("--device", default="cpu", help="'cpu', 'cuda', or 'auto'")
-    parser.add_argument("--time-key", choices=("train_s", "elapsed_s"), default="train_s",
-                        help="x axis: training seconds (evaluation excluded) or wall clock")
+    parser.add_argument("--time-key", choices=("train_s", "train_cpu_s", "elapsed_s"), default="train_s",
+                        help="x axis: training seconds (evaluation excluded), their CPU seconds (what other work on "
+                             "the machine barely moves), or wall clock")
     parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                         help="dotted config overrides applied to every run, e.g. pipeline.model.rasterization_backend=cpu")
     parser.add_argument("--output-dir", type=Path, default=Path("bench"), help="report folder")
@@ -368,6 +411,15 @@ def build_parser() -> argparse.ArgumentParser:
                              "checkpoint (same command line plus --resume)")
     parser.add_argument("--steps-per-save", type=int, default=1000,
                         help="checkpoint every this many steps (what --resume continues from; 0: only at the end)")
+    cluster = parser.add_argument_group("running runs at once (Ray: pip install 'kc-splatfacto[cluster]')")
+    cluster.add_argument("--workers", type=int, default=1,
+                         help="runs at once on an embedded local Ray cluster (1: one after another in this process)")
+    cluster.add_argument("--threads", type=int, default=None,
+                         help="torch/numba threads per run (default: all cores serially, cores/workers on a local "
+                              "cluster, 1 on --ray-address)")
+    cluster.add_argument("--ray-address", default=None,
+                         help="submit every run as a task to this running Ray cluster (`ray start --head` prints "
+                              "it; default: $RAY_ADDRESS)")
     return parser
 
 
@@ -381,7 +433,14 @@ def entrypoint(argv: list[str] | None = None) -> int:
 def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
     check_bench_args(args)
-    paths = run_bench(args, argv)
+    try:
+        paths = run_bench(args, argv)
+    except StudyRunsFailed:
+        return 1
+    except StudyInterrupted:
+        print("[kc-bench] stopped: the finished runs and their report are kept; the same command with --resume "
+              "continues", file=sys.stderr, flush=True)
+        return 130
     for name, path in paths.items():
         print(f"{name}: {path}")
     return 0

@@ -188,3 +188,41 @@ def test_paired_deltas_match_numpy(tmp_path):
     assert f"{np.mean(psnr):+.2f}" in table and f"{psnr[1]:+.2f}" in table
     paths = report.write_report(rows, tmp_path / "out", baseline="splatfacto")
     assert "Per-seed differences" in paths["table"].read_text()
+
+
+def test_pooled_deltas_match_scipy_t_intervals():
+    """The all-pairs estimate is a one-sample t interval over every pair (scipy's ttest_1samp); with two scenes the
+    per-scene estimate (m1 + m2) / 2 has half the Welch interval of scipy's ttest_ind(a, -b) (whose difference of
+    means is m1 + m2, with the same standard error and Welch-Satterthwaite degrees of freedom)."""
+    from scipy import stats
+
+    from kc_splatfacto.analysis.report import pooled_deltas
+
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(0.4, 0.3, size=8), rng.normal(-0.2, 0.9, size=5)  # unequal spreads and sizes
+    paired = [{"method": "kc", "scene": "one", "seeds": list(range(8)), "psnr_db": a.tolist()},
+              {"method": "kc", "scene": "two", "seeds": list(range(5)), "psnr_db": b.tolist()}]
+    (pooled,) = pooled_deltas(paired)
+    assert pooled["num_pairs"] == 13 and pooled["scenes"] == ["one", "two"]
+
+    both = np.concatenate([a, b])
+    assert pooled["psnr_db_all_pairs"] == pytest.approx(both.mean(), abs=1e-12)
+    low, high = stats.ttest_1samp(both, 0.0).confidence_interval(0.95)
+    assert pooled["psnr_db_all_pairs_interval"] == pytest.approx((low, high), abs=1e-10)
+
+    assert pooled["psnr_db_per_scene"] == pytest.approx((a.mean() + b.mean()) / 2, abs=1e-12)
+    low, high = stats.ttest_ind(a, -b, equal_var=False).confidence_interval(0.95)
+    assert pooled["psnr_db_per_scene_interval"] == pytest.approx((low / 2, high / 2), abs=1e-10)
+    assert pooled["psnr_db_scene_means"] == pytest.approx([a.mean(), b.mean()], abs=1e-12)
+    assert "ssim_pct_all_pairs" not in pooled  # a metric no entry has is left out, not reported as zero
+
+
+def test_pooled_deltas_need_two_pairs_per_scene_for_the_per_scene_interval():
+    from kc_splatfacto.analysis.report import pooled_deltas
+
+    paired = [{"method": "kc", "scene": "one", "seeds": [0, 1], "psnr_db": [0.1, 0.3]},
+              {"method": "kc", "scene": "two", "seeds": [0], "psnr_db": [0.5]}]
+    (pooled,) = pooled_deltas(paired)
+    assert pooled["psnr_db_per_scene"] == pytest.approx(0.35)
+    assert pooled["psnr_db_per_scene_interval"] is None  # one pair has no within-scene variance
+    assert pooled["psnr_db_all_pairs"] == pytest.approx(0.3)
