@@ -18,10 +18,10 @@ import torch.nn.functional as F
 
 from kc_splatfacto.data.outputs import Cameras
 from kc_splatfacto.losses.frequency import FrequencyLoss, FrequencyLossConfig
-from kc_splatfacto.render.constants import FAR_PLANE, NEAR_PLANE
-from kc_splatfacto.model.gaussians import init_gaussian_params
 from kc_splatfacto.model import ops
+from kc_splatfacto.model.gaussians import init_gaussian_params
 from kc_splatfacto.model.strategy import DefaultStrategy, NoGaussiansLeftError
+from kc_splatfacto.render.constants import FAR_PLANE, NEAR_PLANE
 
 EVAL_BACKGROUND = (0.1490, 0.1647, 0.2157)
 """Splatfacto's fixed background outside training when training uses random backgrounds (viser's grey)"""
@@ -259,7 +259,7 @@ class SplatfactoModel(torch.nn.Module):
     ):
         super().__init__()
         self.config = config
-        self.schedule = schedule = config.step_schedule()
+        self.schedule = config.step_schedule()
         self.scene_scale = float(scene_scale)
         self.num_train_data = int(num_train_data)
         use_seed = seed_points is not None and not config.random_init

@@ -20,7 +20,14 @@ from torch import Tensor
 
 from . import _project_kernels as PK
 from .constants import (
-    ALPHA_THRESHOLD, EXTENT_SIGMA, FOV_CLAMP_MARGIN, SH_C0, SH_C1, SH_C2, SH_C3, SH_COLOR_OFFSET,
+    ALPHA_THRESHOLD,
+    EXTENT_SIGMA,
+    FOV_CLAMP_MARGIN,
+    SH_C0,
+    SH_C1,
+    SH_C2,
+    SH_C3,
+    SH_COLOR_OFFSET,
 )
 from .errors import NonFiniteInputError, non_finite_message
 from .projection import RADIUS_MAX, ProjectedSplats
