@@ -340,7 +340,7 @@ class WaveletBands:
     wavelet_levels: int
     wavelet_mode: str
     cbc_correlation: bool
-    image_shape: tuple[int, int, int, int]
+    image_shape: tuple[int, ...]
 
     def to(self, *args, **kwargs) -> WaveletBands:
         def move(x: Tensor | None) -> Tensor | None:
@@ -499,7 +499,7 @@ def kc_loss(pred: WaveletBands, gt: WaveletBands | None = None, kc_supervised: b
     if pred.coeffs.levels == 0:
         return _no_band_loss(pred.coeffs)
     k_pred, spread_pred = _need(pred, "kurtosis", "pred"), _need(pred, "spread", "pred")
-    if not kc_supervised:
+    if not kc_supervised or gt is None:  # (gt is None only when unsupervised: checked above)
         return spread_pred.mean()
     per_image = (spread_pred - _need(gt, "spread", "gt")).abs() + (k_pred - _need(gt, "kurtosis", "gt")).abs().sum(dim=-1)
     return per_image.mean()
@@ -518,7 +518,7 @@ def cbc_loss(pred: WaveletBands, gt: WaveletBands | None = None, cbc_supervised:
     if pred.coeffs.levels == 0:
         return _no_band_loss(pred.coeffs)
     l_pred = _need(pred, "l_cov", "pred")
-    if not cbc_supervised:
+    if not cbc_supervised or gt is None:  # (gt is None only when unsupervised: checked above)
         return l_pred.mean()
     return (l_pred - _need(gt, "l_cov", "gt")).abs().mean()
 

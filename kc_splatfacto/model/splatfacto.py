@@ -22,6 +22,7 @@ from kc_splatfacto.model import ops
 from kc_splatfacto.model.gaussians import init_gaussian_params
 from kc_splatfacto.model.strategy import DefaultStrategy, NoGaussiansLeftError
 from kc_splatfacto.render.constants import FAR_PLANE, NEAR_PLANE
+from kc_splatfacto.render.rasterization import RenderMode
 
 EVAL_BACKGROUND = (0.1490, 0.1647, 0.2157)
 """Splatfacto's fixed background outside training when training uses random backgrounds (viser's grey)"""
@@ -262,10 +263,10 @@ class SplatfactoModel(torch.nn.Module):
         self.schedule = config.step_schedule()
         self.scene_scale = float(scene_scale)
         self.num_train_data = int(num_train_data)
-        use_seed = seed_points is not None and not config.random_init
+        seeds = seed_points if seed_points is not None and not config.random_init else (None, None)
         self.gauss_params = init_gaussian_params(
-            seed_points[0] if use_seed else None,
-            seed_points[1] if use_seed else None,
+            seeds[0],
+            seeds[1],
             sh_degree=config.sh_degree,
             scene_scale=self.scene_scale,
             num_random=config.num_random,
@@ -277,6 +278,7 @@ class SplatfactoModel(torch.nn.Module):
         self.info: dict[str, Any] = {}
         self.register_buffer("background_color", self._fixed_background(), persistent=False)
         self._frequency_loss: FrequencyLoss | None = None
+        self._kurtosis_probe: FrequencyLoss | None = None
         self._wavelet_targets: dict[tuple[int, int], Any] = {}
 
     # ----------------------------------------------------------------------------------------------- parameters
@@ -343,7 +345,7 @@ class SplatfactoModel(torch.nn.Module):
     def _get_background_color(self) -> torch.Tensor:
         if self.training and self.config.background_color == "random":
             return torch.rand(3, device=self.device)
-        return self.background_color.to(self.device)
+        return self.get_buffer("background_color").to(self.device)
 
     def sh_degree_to_use(self) -> int:
         return min(self.step // self.schedule.sh_degree_interval, self.config.sh_degree)
@@ -371,6 +373,7 @@ class SplatfactoModel(torch.nn.Module):
             raise ValueError(f"get_outputs renders one camera at a time, got {len(camera)}")
         camera = rescale_cameras(camera.to(self.device), self.get_downscale_factor())
         width, height = int(camera.widths[0]), int(camera.heights[0])
+        colors: torch.Tensor | SplitSH
         if self.config.sh_degree > 0:
             # the two parameters as they are: the cpu backend reads them in place (no [N, 16, 3] copy per step)
             colors = SplitSH(self.features_dc[:, None, :], self.features_rest)
@@ -378,7 +381,7 @@ class SplatfactoModel(torch.nn.Module):
         else:
             colors = torch.sigmoid(self.features_dc)
             sh_degree = None
-        render_mode = "RGB+ED" if (self.config.output_depth_during_training or not self.training) else "RGB"
+        render_mode: RenderMode = "RGB+ED" if (self.config.output_depth_during_training or not self.training) else "RGB"
         render, alpha, info = rasterization(
             means=self.means,
             quats=self.quats,
@@ -466,12 +469,15 @@ class SplatfactoModel(torch.nn.Module):
     def wavelet_target(self, gt_bchw: torch.Tensor, image_idx: int | None) -> Any:
         """The (masked, composited) GT's wavelet coefficients and statistics [1, 3, h, w], computed once per
         (training image, resolution); ``image_idx`` None: not cached."""
+        frequency_loss = self.frequency_loss
+        if frequency_loss is None:
+            raise RuntimeError("wavelet_target: every frequency-loss weight is zero (no loss to prepare a target for)")
         if image_idx is None:
-            return self.frequency_loss.prepare_target(gt_bchw)
+            return frequency_loss.prepare_target(gt_bchw)
         key = (int(image_idx), self.get_downscale_factor())
         target = self._wavelet_targets.get(key)
         if target is None:
-            target = self._wavelet_targets[key] = self.frequency_loss.prepare_target(gt_bchw)
+            target = self._wavelet_targets[key] = frequency_loss.prepare_target(gt_bchw)
         return target
 
     def get_loss_dict(self, outputs: dict[str, Any], batch: dict[str, Any]) -> dict[str, torch.Tensor]:
@@ -556,12 +562,15 @@ class SplatfactoModel(torch.nn.Module):
 
         ``image`` is an [H, W, 3] image or the GT's cached WaveletBands (whose kurtosis is read, not recomputed).
         """
-        from kc_splatfacto.losses.frequency import WaveletBands, mean_band_kurtosis, wavelet_bands
+        from kc_splatfacto.losses.frequency import WaveletBands, mean_band_kurtosis
 
         if not isinstance(image, WaveletBands):
+            if self._kurtosis_probe is None:
+                # the loss itself, or (every weight zero) a module with the same DWT settings: either warns once per
+                # run when the image is too small for the levels
+                self._kurtosis_probe = self.frequency_loss or self.config.frequency_loss_config().setup()
             with torch.no_grad():
-                image = wavelet_bands(_bchw(image.detach().float()), self.config.wave, self.config.wavelet_levels,
-                                      self.config.wavelet_mode, covariance=False)
+                image = self._kurtosis_probe.bands(_bchw(image.detach().float()), covariance=False)
         return mean_band_kurtosis(image)
 
     # ----------------------------------------------------------------------------------------------- density control

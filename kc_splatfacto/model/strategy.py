@@ -180,7 +180,7 @@ class DefaultStrategy:
         if step < self.refine_scale2d_stop_iter:
             is_split |= state["radii"] > self.grow_scale2d
         if self.max_gaussians is not None:
-            is_dupli, is_split = self._cap_growth(grads, is_dupli, is_split, len(params["means"]))
+            is_dupli, is_split = self._cap_growth(grads, is_dupli, is_split, len(params["means"]), self.max_gaussians)
             n_dupli = int(is_dupli.sum())
         n_split = int(is_split.sum())
         if n_dupli > 0:
@@ -192,10 +192,10 @@ class DefaultStrategy:
         return n_dupli, n_split
 
     def _cap_growth(
-        self, grads: torch.Tensor, is_dupli: torch.Tensor, is_split: torch.Tensor, n_gaussian: int
+        self, grads: torch.Tensor, is_dupli: torch.Tensor, is_split: torch.Tensor, n_gaussian: int, max_gaussians: int
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Keep the highest-gradient candidates whose added Gaussians fit under ``max_gaussians``."""
-        budget = max(self.max_gaussians - n_gaussian, 0)
+        budget = max(max_gaussians - n_gaussian, 0)
         cost = is_dupli.long() + is_split.long() * (self.n_split_samples - 1)
         if int(cost.sum()) <= budget:
             return is_dupli, is_split

@@ -114,7 +114,7 @@ def _match_numba_threads() -> None:
     within a step, do not oversubscribe the cores; both follow ``torch.set_num_threads``."""
     import numba
 
-    wanted = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
+    wanted = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
     if numba.get_num_threads() != wanted:
         numba.set_num_threads(wanted)
 
@@ -154,7 +154,8 @@ def _check_inputs(
     if int(width) != width or int(height) != height or width < 1 or height < 1:
         raise ValueError(f"width and height must be positive integers, got width={width}, height={height}")
     if sh_degree is None:
-        if not (colors.dim() == 2 and colors.shape[0] == n) and not (colors.dim() == 3 and colors.shape[:2] == (c, n)):
+        dim = len(colors.shape)
+        if not (dim == 2 and colors.shape[0] == n) and not (dim == 3 and colors.shape[:2] == (c, n)):
             raise ValueError(
                 f"colors must be [N, D] or [C, N, D] (N={n}, C={c}) when sh_degree is None, got {tuple(colors.shape)}; "
                 "pass sh_degree for SH coefficients [N, K, 3]"
@@ -179,7 +180,7 @@ def _check_inputs(
         return
     for name, tensor in (
         ("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
-        ("colors", colors), ("viewmats", viewmats), ("Ks", Ks),
+        ("colors", colors if isinstance(colors, Tensor) else colors.cat()), ("viewmats", viewmats), ("Ks", Ks),
     ):
         if not torch.isfinite(tensor).all():
             raise NonFiniteInputError(non_finite_message(name, tensor), (name,))
@@ -289,11 +290,13 @@ def _rasterization_cpu(means, quats, scales, opacities, colors, viewmats, Ks, wi
         splats = _project_torch(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree,
                                 near_plane, far_plane, eps2d, radius_clip, rasterize_mode)
 
+    from .rasterize_cpu import rasterize_to_pixels_cpu  # numba: loaded with the first cpu render
+
     def bin_tiles(means2d, radii, depths, tile_width, tile_height):
         return bin_tiles_cpu(means2d, radii, depths, tile_size, tile_width, tile_height)
 
     return _composite(splats, width, height, backgrounds, render_mode, absgrad, tile_size, bin_tiles,
-                      _cpu_rasterizer(), "cpu")
+                      rasterize_to_pixels_cpu, "cpu")
 
 
 def _rasterization_torch(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, sh_degree,
@@ -380,6 +383,7 @@ def _composite(
     """Shared tail of the cpu and torch backends: depth channels of the render mode, tile binning (``bin_tiles``),
     compositing (``rasterize``, a ``rasterize_to_pixels`` implementation), expected depth, and gsplat's meta."""
     radii, means2d, depths, conics, opacities_c, colors_c = splats
+    assert colors_c is not None  # both projections fill the per-pair colours
     n_cameras = means2d.shape[0]
     if means2d.requires_grad:
         means2d.retain_grad()  # density control reads meta["means2d"].grad
