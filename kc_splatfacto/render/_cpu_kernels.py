@@ -15,10 +15,11 @@ Layout shared by the kernels (all arrays C-contiguous numpy):
   intersection (each intersection belongs to exactly one tile, so no write races), reduced to Gaussians by
   ``reduce_isect_grads`` in a fixed order per Gaussian (deterministic).
 
-One kernel family for every tile size: a tile is cut into blocks of 4x4 pixels whose 16 pixels are 16 branch-free
-lanes (``rasterize_fwd`` / ``rasterize_bwd``); a tile size that is not a multiple of 4 leaves the blocks' outer lanes
-dead. Every kernel reads an intersection through ``_load_gaussian`` and evaluates it at a pixel through
-``_gaussian_sigma`` and ``_alpha_at`` (the branch-free float32 ``exp_neg``).
+Kernel families: the 4x4-block kernels (``*_blocks``, 16 px tiles: ``constants.BLOCK_TILE_SIZE``) and the scalar
+kernels (any other tile size); docs/rasterizer.md ("Two compositing families") measures why both stay. Every kernel
+reads an intersection through ``_load_gaussian``; both families evaluate a Gaussian at a pixel through ``_gaussian_sigma`` and ``_alpha_at``
+(the branch-free float32 ``exp_neg``), so they keep and skip the same (pixel, Gaussian) pairs; their colours differ
+only by float32 (blocks) vs float64 (scalar forward) accumulation, up to about 2.4e-7.
 
 The gsplat constants (alpha clamp, alpha threshold, transmittance threshold) are kernel ARGUMENTS, not globals:
 numba freezes globals into its on-disk cache, and a cache keyed on this file alone would not see a change in
@@ -32,9 +33,9 @@ import math
 import numpy as np
 from numba import njit, prange
 
-# Layout constants (named once in constants.py). They shape the kernels' lane arrays, so they are compile-time
+# Layout constants (named once in constants.py). They shape the block kernels' arrays, so they are compile-time
 # globals: numba's cache is keyed on THIS file, so after changing them there, delete render/__pycache__.
-from .constants import BLOCK_SIZE, LANES
+from .constants import BLOCK_SIZE, BLOCK_TILE_SIZE, BLOCKS_PER_TILE, LANES
 
 # packed row: x, y, conic a, b, c, opacity, extent x, extent y, sigma cut, then D colour channels
 PACK_X, PACK_Y, PACK_CONIC_A, PACK_CONIC_B, PACK_CONIC_C, PACK_OPACITY = 0, 1, 2, 3, 4, 5
@@ -108,7 +109,7 @@ def _gaussian_sigma(ca, cb, cc, dx, dy):
 @njit(inline="always")
 def _alpha_at(opacity, sigma, max_alpha):
     """``(exp(-sigma), alpha = min(max_alpha, opacity exp(-sigma)))`` with the branch-free float32 ``exp_neg``, the
-    same in the forward and the backward kernel (so both take the same keep/skip decisions)."""
+    same in the scalar and the block kernels (so both families take the same keep/skip decisions)."""
     vis = exp_neg(sigma)
     return vis, min(max_alpha, opacity * vis)
 
@@ -182,13 +183,231 @@ def _row_range(bounded, k_cut, k_det, k_b, gx, dy, pixel_offset, lo, hi):
 def _load_gaussian(packed, m, pixel_offset, x0, y0, x1, y1):
     """Intersection ``m``'s Gaussian and the pixels of the tile box ``[x0, x1) x [y0, y1)`` its ellipse's extent
     covers: (x, y, conic a, b, c, opacity, sigma_cut, (first, end) column, (first, end) row); a range is empty
-    (end <= first) when the ellipse misses the tile."""
+    (end <= first) when the ellipse misses the tile. Every kernel's per-intersection prologue."""
     gx = packed[m, PACK_X]
     gy = packed[m, PACK_Y]
     j_first, j_end = _pixel_range(gx, packed[m, PACK_EXTENT_X], pixel_offset, x0, x1)
     i_first, i_end = _pixel_range(gy, packed[m, PACK_EXTENT_Y], pixel_offset, y0, y1)
     return (gx, gy, packed[m, PACK_CONIC_A], packed[m, PACK_CONIC_B], packed[m, PACK_CONIC_C], packed[m, PACK_OPACITY],
             packed[m, PACK_SIGMA_CUT], j_first, j_end, i_first, i_end)
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def rasterize_fwd(
+    packed,
+    tile_offsets,
+    backgrounds,
+    n_cameras,
+    image_height,
+    image_width,
+    tile_size,
+    tile_height,
+    tile_width,
+    pixel_offset,
+    max_alpha,
+    alpha_threshold,
+    transmittance_threshold,
+    render_colors,
+    T_final,
+    last_ids,
+    n_contrib,
+):
+    """Front-to-back compositing, one tile per task (fills render_colors [C,H,W,D], T_final, last_ids and
+    n_contrib [C,H,W] int32, the number of Gaussians composited into each pixel).
+
+    backgrounds [C,D] float32 (zeros when the caller has none: ``T * 0`` adds nothing).
+    """
+    n_isects = packed.shape[0]
+    n_channels = packed.shape[1] - PACK_HEAD
+    tiles_per_image = tile_height * tile_width
+    n_tiles = n_cameras * tiles_per_image
+    one = _F32(1.0)
+    for tile in prange(n_tiles):
+        cam, x0, y0, x1, y1 = _tile_geometry(tile, tiles_per_image, tile_width, tile_size, image_width, image_height)
+        span_x = x1 - x0
+        n_pix = span_x * (y1 - y0)
+        start = tile_offsets[tile]
+        end = tile_offsets[tile + 1] if tile + 1 < n_tiles else n_isects
+
+        T = np.ones(n_pix, dtype=np.float32)
+        acc = np.zeros((n_pix, n_channels), dtype=np.float64)
+        last = np.full(n_pix, -1, dtype=np.int32)
+        count = np.zeros(n_pix, dtype=np.int32)
+        done = np.zeros(n_pix, dtype=np.bool_)
+        n_done = 0
+        for m in range(start, end):
+            if n_done == n_pix:
+                break
+            gx, gy, ca, cb, cc, op, sigma_cut, j_first, j_end, i_first, i_end = _load_gaussian(
+                packed, m, pixel_offset, x0, y0, x1, y1)
+            bounded, k_cut, k_det, k_b = _ellipse_rows(ca, cb, cc, sigma_cut)
+            for i in range(i_first, i_end):
+                dy = gy - (_F32(i) + pixel_offset)
+                row_first, row_end = _row_range(bounded, k_cut, k_det, k_b, gx, dy, pixel_offset, j_first, j_end)
+                row = (i - y0) * span_x - x0
+                for j in range(row_first, row_end):
+                    p = row + j
+                    if done[p]:
+                        continue
+                    dx = gx - (_F32(j) + pixel_offset)
+                    sigma = _gaussian_sigma(ca, cb, cc, dx, dy)
+                    if sigma > sigma_cut:
+                        continue
+                    _, alpha = _alpha_at(op, sigma, max_alpha)
+                    if sigma < 0 or alpha < alpha_threshold:
+                        continue
+                    next_T = T[p] * (one - alpha)
+                    if next_T <= transmittance_threshold:
+                        # gsplat: this pixel is done, exclusive (the Gaussian is not composited)
+                        done[p] = True
+                        n_done += 1
+                        continue
+                    vis = alpha * T[p]
+                    for k in range(n_channels):
+                        acc[p, k] += packed[m, PACK_HEAD + k] * vis
+                    last[p] = m
+                    count[p] += 1
+                    T[p] = next_T
+        for i in range(y0, y1):
+            for j in range(x0, x1):
+                p = (i - y0) * span_x + (j - x0)
+                t = T[p]
+                T_final[cam, i, j] = t
+                last_ids[cam, i, j] = last[p]
+                n_contrib[cam, i, j] = count[p]
+                for k in range(n_channels):
+                    render_colors[cam, i, j, k] = acc[p, k] + t * backgrounds[cam, k]
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def rasterize_bwd(
+    packed,
+    tile_offsets,
+    backgrounds,
+    T_final,
+    last_ids,
+    v_render_colors,
+    v_render_alphas,
+    n_cameras,
+    image_height,
+    image_width,
+    tile_size,
+    tile_height,
+    tile_width,
+    pixel_offset,
+    max_alpha,
+    alpha_threshold,
+    isect_grads,
+):
+    """Back-to-front gradients per tile from each pixel's last contributor (fills isect_grads [M, 8+D]).
+
+    Transmittance is recovered by division (``T /= 1 - alpha``) as gsplat does, in float64;
+    ``buffer`` is the colour composited behind the current Gaussian. v_render_colors [C,H,W,D],
+    v_render_alphas [C,H,W] float32; backgrounds [C,D] float32 (zeros when none).
+    """
+    n_isects = packed.shape[0]
+    n_channels = packed.shape[1] - PACK_HEAD
+    tiles_per_image = tile_height * tile_width
+    n_tiles = n_cameras * tiles_per_image
+    for tile in prange(n_tiles):
+        cam, x0, y0, x1, y1 = _tile_geometry(tile, tiles_per_image, tile_width, tile_size, image_width, image_height)
+        span_x = x1 - x0
+        n_pix = span_x * (y1 - y0)
+        start = tile_offsets[tile]
+        end = tile_offsets[tile + 1] if tile + 1 < n_tiles else n_isects
+        if end <= start:
+            continue
+
+        T = np.empty(n_pix, dtype=np.float64)
+        T_fin = np.empty(n_pix, dtype=np.float64)
+        last = np.empty(n_pix, dtype=np.int32)
+        v_c = np.empty((n_pix, n_channels), dtype=np.float64)
+        # d(out)/d(alpha) terms that do not depend on the Gaussian: T_final * (v_alpha_out - <bg, v_color>)
+        alpha_term = np.empty(n_pix, dtype=np.float64)
+        buffer = np.zeros((n_pix, n_channels), dtype=np.float64)
+        tile_last = -1
+        for i in range(y0, y1):
+            for j in range(x0, x1):
+                p = (i - y0) * span_x + (j - x0)
+                t = np.float64(T_final[cam, i, j])
+                T[p] = t
+                T_fin[p] = t
+                lp = last_ids[cam, i, j]
+                last[p] = lp
+                if lp > tile_last:
+                    tile_last = lp
+                bg_dot = 0.0
+                for k in range(n_channels):
+                    v = np.float64(v_render_colors[cam, i, j, k])
+                    v_c[p, k] = v
+                    bg_dot += np.float64(backgrounds[cam, k]) * v
+                alpha_term[p] = t * (np.float64(v_render_alphas[cam, i, j]) - bg_dot)
+
+        v_rgb = np.zeros(n_channels, dtype=np.float64)
+        for m in range(min(tile_last, end - 1), start - 1, -1):
+            gx, gy, ca, cb, cc, op, sigma_cut, j_first, j_end, i_first, i_end = _load_gaussian(
+                packed, m, pixel_offset, x0, y0, x1, y1)
+            bounded, k_cut, k_det, k_b = _ellipse_rows(ca, cb, cc, sigma_cut)
+            for k in range(n_channels):
+                v_rgb[k] = 0.0
+            v_ca = 0.0
+            v_cb = 0.0
+            v_cc = 0.0
+            v_x = 0.0
+            v_y = 0.0
+            v_x_abs = 0.0
+            v_y_abs = 0.0
+            v_op = 0.0
+            for i in range(i_first, i_end):
+                dy = gy - (_F32(i) + pixel_offset)
+                row_first, row_end = _row_range(bounded, k_cut, k_det, k_b, gx, dy, pixel_offset, j_first, j_end)
+                row = (i - y0) * span_x - x0
+                for j in range(row_first, row_end):
+                    p = row + j
+                    if m > last[p]:
+                        continue
+                    dx = gx - (_F32(j) + pixel_offset)
+                    sigma = _gaussian_sigma(ca, cb, cc, dx, dy)
+                    if sigma > sigma_cut:
+                        continue
+                    vis, alpha = _alpha_at(op, sigma, max_alpha)
+                    if sigma < 0 or alpha < alpha_threshold:
+                        continue
+                    ra = 1.0 / (1.0 - np.float64(alpha))
+                    t = T[p] * ra
+                    T[p] = t
+                    fac = np.float64(alpha) * t
+                    v_alpha = alpha_term[p] * ra
+                    for k in range(n_channels):
+                        vk = v_c[p, k]
+                        ck = np.float64(packed[m, PACK_HEAD + k])
+                        v_rgb[k] += fac * vk
+                        v_alpha += (ck * t - buffer[p, k] * ra) * vk
+                        buffer[p, k] += ck * fac
+                    if op * vis <= max_alpha:
+                        v_sigma = -np.float64(op * vis) * v_alpha
+                        dx64 = np.float64(dx)
+                        dy64 = np.float64(dy)
+                        v_ca += 0.5 * v_sigma * dx64 * dx64
+                        v_cb += v_sigma * dx64 * dy64
+                        v_cc += 0.5 * v_sigma * dy64 * dy64
+                        gxp = v_sigma * (np.float64(ca) * dx64 + np.float64(cb) * dy64)
+                        gyp = v_sigma * (np.float64(cb) * dx64 + np.float64(cc) * dy64)
+                        v_x += gxp
+                        v_y += gyp
+                        v_x_abs += abs(gxp)
+                        v_y_abs += abs(gyp)
+                        v_op += np.float64(vis) * v_alpha
+            isect_grads[m, GRAD_X] = v_x
+            isect_grads[m, GRAD_Y] = v_y
+            isect_grads[m, GRAD_CONIC_A] = v_ca
+            isect_grads[m, GRAD_CONIC_B] = v_cb
+            isect_grads[m, GRAD_CONIC_C] = v_cc
+            isect_grads[m, GRAD_OPACITY] = v_op
+            isect_grads[m, GRAD_ABS_X] = v_x_abs
+            isect_grads[m, GRAD_ABS_Y] = v_y_abs
+            for k in range(n_channels):
+                isect_grads[m, GRAD_HEAD + k] = v_rgb[k]
 
 
 @njit(parallel=True, cache=True, fastmath=False)
@@ -228,9 +447,9 @@ def reduce_isect_grads(isect_grads, flatten_ids, n_parts, sums, v_means2d, v_con
 
 
 # ------------------------------------------------------------------------------------------------------------------
-# Lane utilities for the compositing kernels below: 16 pixels are processed as 16 lanes without branches (LLVM turns
-# the lane loops into AVX2/AVX-512 code), and the Gaussian's exp is the branch-free ``exp_neg``. Decisions (skip,
-# stop) are gsplat's per-pixel tests.
+# Lane utilities for the vectorized 16 px tile kernels below: 16 pixels are processed as 16 lanes without branches
+# (LLVM turns the lane loops into AVX2 code), and the Gaussian's exp is the branch-free ``exp_neg``. Decisions (skip,
+# stop) are the same per-pixel tests as the scalar kernels above.
 # ------------------------------------------------------------------------------------------------------------------
 
 _LOG2E = np.float32(1.4426950408889634)
@@ -278,11 +497,11 @@ def exp_neg(s):
 
 
 # ------------------------------------------------------------------------------------------------------------------
-# Compositing: a tile is n_bx x n_bx blocks of 4x4 pixels (n_bx = ceil(tile_size / 4): 4 for gsplat's 16 px tiles)
-# and the 16 pixels of one block are the 16 branch-free lanes. A Gaussian visits only the blocks that its ellipse's
-# row spans touch (the union of the spans of the block's 4 rows), so a small Gaussian wastes few lanes. State is
-# [block, lane]: block ``b = (r // 4) * n_bx + c // 4``, lane ``l = (r % 4) * 4 + c % 4`` for the pixel at tile row
-# r, column c; lanes outside the tile or the image are never live.
+# 4x4-block kernels for 16 px tiles: a tile is 16 blocks of 4x4 pixels and the 16 pixels of one block are the 16
+# branch-free lanes. A Gaussian visits only the blocks that its ellipse's row spans touch (the union of the spans of
+# the block's 4 rows), so a small Gaussian wastes far fewer lanes than with whole 16 px rows. State is [block, lane]:
+# block ``b = (r // 4) * 4 + c // 4``, lane ``l = (r % 4) * 4 + c % 4`` for the pixel at tile row r, column c.
+# Per-pixel arithmetic and tests are exactly those of the scalar kernels above.
 # ------------------------------------------------------------------------------------------------------------------
 
 BLOCK = BLOCK_SIZE
@@ -304,12 +523,11 @@ def _block_cols(bounded, k_cut, k_det, k_b, gx, gy, pixel_offset, i_a, i_b, j_fi
 
 
 @njit(inline="always")
-def _block_tables(x0, y0, n_bx, pixel_offset):
-    """Pixel-centre coordinates (float32) per (block column, lane) and (block row, lane) of a tile of n_bx x n_bx
-    blocks."""
-    px = np.empty((n_bx, LANES), dtype=np.float32)
-    py = np.empty((n_bx, LANES), dtype=np.float32)
-    for q in range(n_bx):
+def _block_tables(x0, y0, pixel_offset):
+    """Pixel-centre coordinates per (block column, lane) and (block row, lane), float32 exactly as the scalar kernels."""
+    px = np.empty((BLOCK, LANES), dtype=np.float32)
+    py = np.empty((BLOCK, LANES), dtype=np.float32)
+    for q in range(BLOCK):
         for lane in range(LANES):
             px[q, lane] = _F32(x0 + BLOCK * q + (lane % BLOCK)) + pixel_offset
             py[q, lane] = _F32(y0 + BLOCK * q + (lane // BLOCK)) + pixel_offset
@@ -317,14 +535,13 @@ def _block_tables(x0, y0, n_bx, pixel_offset):
 
 
 @njit(parallel=True, cache=True, fastmath=False)
-def rasterize_fwd(
+def rasterize_fwd_blocks(
     packed,
     tile_offsets,
     backgrounds,
     n_cameras,
     image_height,
     image_width,
-    tile_size,
     tile_height,
     tile_width,
     pixel_offset,
@@ -336,38 +553,33 @@ def rasterize_fwd(
     last_ids,
     n_contrib,
 ):
-    """Front-to-back compositing, one tile per task (fills render_colors [C,H,W,D], T_final, last_ids and
-    n_contrib [C,H,W] int32, the number of Gaussians composited into each pixel); float32 like gsplat.
-
-    backgrounds [C,D] float32 (zeros when the caller has none: ``T * 0`` adds nothing).
-    """
+    """``rasterize_fwd`` for 16 px tiles with 4x4-pixel blocks as the 16 lanes (same outputs)."""
     n_isects = packed.shape[0]
     n_channels = packed.shape[1] - PACK_HEAD
     tiles_per_image = tile_height * tile_width
     n_tiles = n_cameras * tiles_per_image
-    n_bx = (tile_size + BLOCK - 1) // BLOCK  # blocks per tile side
-    n_blocks = n_bx * n_bx
     one = _F32(1.0)
     zero = _F32(0.0)
     for tile in prange(n_tiles):
-        cam, x0, y0, x1, y1 = _tile_geometry(tile, tiles_per_image, tile_width, tile_size, image_width, image_height)
+        cam, x0, y0, x1, y1 = _tile_geometry(tile, tiles_per_image, tile_width, BLOCK_TILE_SIZE, image_width,
+                                               image_height)
         start = tile_offsets[tile]
         end = tile_offsets[tile + 1] if tile + 1 < n_tiles else n_isects
-        T = np.ones((n_blocks, LANES), dtype=np.float32)
-        acc = np.zeros((n_channels, n_blocks, LANES), dtype=np.float32)
-        last = np.full((n_blocks, LANES), -1, dtype=np.int32)
-        count = np.zeros((n_blocks, LANES), dtype=np.float32)
+        T = np.ones((BLOCKS_PER_TILE, LANES), dtype=np.float32)
+        acc = np.zeros((n_channels, BLOCKS_PER_TILE, LANES), dtype=np.float32)
+        last = np.full((BLOCKS_PER_TILE, LANES), -1, dtype=np.int32)
+        count = np.zeros((BLOCKS_PER_TILE, LANES), dtype=np.float32)
         # 1 while the pixel composites; 0 once done (and for lanes outside the image)
-        live = np.zeros((n_blocks, LANES), dtype=np.float32)
+        live = np.zeros((BLOCKS_PER_TILE, LANES), dtype=np.float32)
         # live lanes per block and in the tile: a block with none is skipped whole (its lanes would change nothing)
-        block_live = np.zeros(n_blocks, dtype=np.int32)
+        block_live = np.zeros(BLOCKS_PER_TILE, dtype=np.int32)
         for r in range(y1 - y0):
             for c in range(x1 - x0):
-                b = (r // BLOCK) * n_bx + c // BLOCK
+                b = (r // BLOCK) * BLOCK + c // BLOCK
                 live[b, (r % BLOCK) * BLOCK + c % BLOCK] = one
                 block_live[b] += 1
         tile_live = (y1 - y0) * (x1 - x0)
-        px, py = _block_tables(x0, y0, n_bx, pixel_offset)
+        px, py = _block_tables(x0, y0, pixel_offset)
         vis = np.empty(LANES, dtype=np.float32)
         for m in range(start, end):
             if tile_live == 0:
@@ -388,7 +600,7 @@ def rasterize_fwd(
                 if ce <= cf:
                     continue
                 for bc in range((cf - x0) // BLOCK, (ce - 1 - x0) // BLOCK + 1):
-                    b = br * n_bx + bc
+                    b = br * BLOCK + bc
                     if block_live[b] == 0:
                         continue
                     n_stop = 0
@@ -425,7 +637,7 @@ def rasterize_fwd(
             for j in range(x0, x1):
                 r = i - y0
                 c = j - x0
-                b = (r // BLOCK) * n_bx + c // BLOCK
+                b = (r // BLOCK) * BLOCK + c // BLOCK
                 lane = (r % BLOCK) * BLOCK + c % BLOCK
                 t = T[b, lane]
                 T_final[cam, i, j] = t
@@ -436,7 +648,7 @@ def rasterize_fwd(
 
 
 @njit(parallel=True, cache=True, fastmath=False, error_model="numpy")
-def rasterize_bwd(
+def rasterize_bwd_blocks(
     packed,
     tile_offsets,
     backgrounds,
@@ -447,7 +659,6 @@ def rasterize_bwd(
     n_cameras,
     image_height,
     image_width,
-    tile_size,
     tile_height,
     tile_width,
     pixel_offset,
@@ -455,39 +666,36 @@ def rasterize_bwd(
     alpha_threshold,
     isect_grads,
 ):
-    """Back-to-front gradients per tile from each pixel's last contributor (fills isect_grads [M, 8+D]).
+    """``rasterize_bwd`` for 16 px tiles with 4x4-pixel blocks as the 16 lanes (same outputs).
 
-    Transmittance is recovered by division (``T /= 1 - alpha``) in float32 as gsplat does; ``buffer`` is the colour
-    composited behind the current Gaussian. v_render_colors [C,H,W,D], v_render_alphas [C,H,W] float32;
-    backgrounds [C,D] float32 (zeros when none). Per Gaussian, each gradient is summed per lane over the visited blocks (in block order), then over the 16 lanes
+    Per Gaussian, each gradient is summed per lane over the visited blocks (in block order), then over the 16 lanes
     in float64 by a fixed pairwise tree: deterministic whatever the thread count.
     """
     n_isects = packed.shape[0]
     n_channels = packed.shape[1] - PACK_HEAD
     tiles_per_image = tile_height * tile_width
     n_tiles = n_cameras * tiles_per_image
-    n_bx = (tile_size + BLOCK - 1) // BLOCK  # blocks per tile side
-    n_blocks = n_bx * n_bx
     half = _F32(0.5)
     one = _F32(1.0)
     zero = _F32(0.0)
     for tile in prange(n_tiles):
-        cam, x0, y0, x1, y1 = _tile_geometry(tile, tiles_per_image, tile_width, tile_size, image_width, image_height)
+        cam, x0, y0, x1, y1 = _tile_geometry(tile, tiles_per_image, tile_width, BLOCK_TILE_SIZE, image_width,
+                                               image_height)
         start = tile_offsets[tile]
         end = tile_offsets[tile + 1] if tile + 1 < n_tiles else n_isects
         if end <= start:
             continue
-        T = np.ones((n_blocks, LANES), dtype=np.float32)
-        last = np.full((n_blocks, LANES), -1, dtype=np.int32)
-        v_c = np.zeros((n_channels, n_blocks, LANES), dtype=np.float32)
-        alpha_term = np.zeros((n_blocks, LANES), dtype=np.float32)
-        buffer = np.zeros((n_channels, n_blocks, LANES), dtype=np.float32)
+        T = np.ones((BLOCKS_PER_TILE, LANES), dtype=np.float32)
+        last = np.full((BLOCKS_PER_TILE, LANES), -1, dtype=np.int32)
+        v_c = np.zeros((n_channels, BLOCKS_PER_TILE, LANES), dtype=np.float32)
+        alpha_term = np.zeros((BLOCKS_PER_TILE, LANES), dtype=np.float32)
+        buffer = np.zeros((n_channels, BLOCKS_PER_TILE, LANES), dtype=np.float32)
         tile_last = -1
         for i in range(y0, y1):
             for j in range(x0, x1):
                 r = i - y0
                 c = j - x0
-                b = (r // BLOCK) * n_bx + c // BLOCK
+                b = (r // BLOCK) * BLOCK + c // BLOCK
                 lane = (r % BLOCK) * BLOCK + c % BLOCK
                 t = T_final[cam, i, j]
                 T[b, lane] = t
@@ -502,7 +710,7 @@ def rasterize_bwd(
                     bg_dot += backgrounds[cam, k] * v
                 # d(out)/d(alpha) terms that do not depend on the Gaussian: T_final * (v_alpha_out - <bg, v_color>)
                 alpha_term[b, lane] = t * (v_render_alphas[cam, i, j] - bg_dot)
-        px, py = _block_tables(x0, y0, n_bx, pixel_offset)
+        px, py = _block_tables(x0, y0, pixel_offset)
         # one block's per-lane values (vis, T, 1 / (1 - alpha), valid, d out / d alpha), in one allocation
         scratch = np.empty((5, LANES), dtype=np.float32)
         # per-lane sums over the blocks of one Gaussian: v_x, v_y, v_a, v_b, v_c, v_opacity, |v_x|, |v_y|, v_rgb
@@ -523,7 +731,7 @@ def rasterize_bwd(
                 if ce <= cf:
                     continue
                 for bc in range((cf - x0) // BLOCK, (ce - 1 - x0) // BLOCK + 1):
-                    b = br * n_bx + bc
+                    b = br * BLOCK + bc
                     for lane in range(LANES):
                         dx = gx - px[bc, lane]
                         dy = gy - py[br, lane]

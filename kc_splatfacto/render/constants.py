@@ -35,10 +35,14 @@ EXTENT_SIGMA = 3.33
 
 # --- tiles (IntersectTile.cu, rendering.py) -------------------------------------------------------------------------
 TILE_SIZE = 16
-# The fast CPU path's compositing kernels (render/_cpu_kernels.py) cut a tile into blocks of BLOCK_SIZE x BLOCK_SIZE
-# pixels (ceil(tile_size / BLOCK_SIZE) per side) and process the LANES pixels of one block as branch-free SIMD lanes.
+# The fast CPU path's vectorized kernels (render/_cpu_kernels.py) run for tiles of BLOCK_TILE_SIZE px only (other
+# tile sizes take its scalar kernels): a tile is BLOCKS_PER_TILE blocks of BLOCK_SIZE x BLOCK_SIZE pixels, and the
+# LANES pixels of one block are processed as branch-free SIMD lanes. The block count is a compile-time constant on
+# purpose: with a run-time count the forward kernel ran 2.2x slower (docs/rasterizer.md, "Two compositing families").
+BLOCK_TILE_SIZE = 16
 BLOCK_SIZE = 4
 LANES = BLOCK_SIZE * BLOCK_SIZE
+BLOCKS_PER_TILE = (BLOCK_TILE_SIZE // BLOCK_SIZE) ** 2
 # isect id = camera id << (DEPTH_BITS + tile_n_bits) | tile id << DEPTH_BITS | float32 bits of the depth.
 DEPTH_BITS = 32
 # camera bits + tile bits must fit in the upper 32 bits of the int64 key.

@@ -7,9 +7,9 @@ skip ``sigma < 0`` and ``alpha < ALPHA_THRESHOLD``, stop before the transmittanc
 background blended with the final transmittance; backward in reverse order from each pixel's last contributor.
 
 Parallel over (camera, tile); each intersection's gradient is written by the one tile that owns it and then
-reduced to Gaussians in a fixed order, so results do not depend on the thread count. Every tile size runs the
-same vectorized kernels, 4x4-pixel blocks as 16 lanes (float32 like gsplat; per-intersection gradient totals and
-the reduction to Gaussians in float64).
+reduced to Gaussians in a fixed order, so results do not depend on the thread count. 16 px tiles run the
+vectorized 16-lane kernels (float32 like gsplat, per-intersection gradient totals and the reduction to Gaussians
+in float64); other tile sizes run scalar kernels (float64 transmittance and gradient sums in backward).
 See ``docs/rasterizer.md`` (Fast CPU path and benchmark).
 """
 
@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from . import _cpu_kernels as K
-from .constants import ALPHA_CLAMP, ALPHA_THRESHOLD, PIXEL_CENTER_OFFSET, TRANSMITTANCE_MIN
+from .constants import ALPHA_CLAMP, ALPHA_THRESHOLD, BLOCK_TILE_SIZE, PIXEL_CENTER_OFFSET, TRANSMITTANCE_MIN
 
 __all__ = ["rasterize_to_pixels_cpu"]
 
@@ -92,9 +92,14 @@ class _RasterizeToPixelsCPU(torch.autograd.Function):
         last_ids = np.empty((C, image_height, image_width), np.int32)
         n_contrib = np.empty((C, image_height, image_width), np.int32)
         with numba.parallel_chunksize(TILES_PER_CHUNK):
-            K.rasterize_fwd(packed, offsets, bg, C, image_height, image_width, tile_size, tile_h, tile_w, pixel_offset,
-                            max_alpha, alpha_threshold, transmittance_threshold, render_colors, T_final, last_ids,
-                            n_contrib)
+            if tile_size == BLOCK_TILE_SIZE:
+                K.rasterize_fwd_blocks(packed, offsets, bg, C, image_height, image_width, tile_h, tile_w, pixel_offset,
+                                       max_alpha, alpha_threshold, transmittance_threshold, render_colors, T_final,
+                                       last_ids, n_contrib)
+            else:
+                K.rasterize_fwd(packed, offsets, bg, C, image_height, image_width, tile_size, tile_h, tile_w,
+                                pixel_offset, max_alpha, alpha_threshold, transmittance_threshold, render_colors,
+                                T_final, last_ids, n_contrib)
 
         ctx.geometry = (C, N, D, image_width, image_height, tile_size, tile_h, tile_w)
         ctx.arrays = (packed, offsets, ids, bg, T_final, last_ids)
@@ -121,9 +126,14 @@ class _RasterizeToPixelsCPU(torch.autograd.Function):
 
         isect_grads = np.zeros((ids.shape[0], K.GRAD_HEAD + D), np.float32)
         with numba.parallel_chunksize(TILES_PER_CHUNK):
-            K.rasterize_bwd(packed, offsets, bg, T_final, last_ids, v_colors_out, v_alphas_out, C, image_height,
-                            image_width, tile_size, tile_h, tile_w, pixel_offset, max_alpha, alpha_threshold,
-                            isect_grads)
+            if tile_size == BLOCK_TILE_SIZE:
+                K.rasterize_bwd_blocks(packed, offsets, bg, T_final, last_ids, v_colors_out, v_alphas_out, C,
+                                       image_height, image_width, tile_h, tile_w, pixel_offset, max_alpha,
+                                       alpha_threshold, isect_grads)
+            else:
+                K.rasterize_bwd(packed, offsets, bg, T_final, last_ids, v_colors_out, v_alphas_out, C, image_height,
+                                image_width, tile_size, tile_h, tile_w, pixel_offset, max_alpha, alpha_threshold,
+                                isect_grads)
         dtype = ctx.means2d.dtype
         # rounded once from the float64 sums into the inputs' dtype (float32 for the other float dtypes)
         out = dtype if dtype in (torch.float32, torch.float64) else torch.float32
