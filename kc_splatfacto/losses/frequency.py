@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,8 +35,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from kc_splatfacto.losses import wavelets
-from kc_splatfacto.losses.wavelets import MODES, WaveletCoeffs, dwt2
+from kc_splatfacto import backend
+from kc_splatfacto.losses.wavelets import MODES, WaveletCoeffs, dwt2, supported_levels
 
 WEIGHTINGS = ("paper", "fine", "uniform")
 # Every statistic is computed on the bands divided by the image's RMS coefficient magnitude s (detached; by Parseval
@@ -50,6 +51,46 @@ WEIGHTINGS = ("paper", "fine", "uniform")
 VARIANCE_REL_EPS = 1e-12
 # Floor of the image power s^2, only active for an all-zero image (then every band is 0 and s only has to be > 0).
 POWER_FLOOR = 1e-30
+
+
+@dataclass
+class FrequencyLossConfig:
+    """Settings of :class:`FrequencyLoss`; the defaults are the paper's (Method section; supplementary hyperparameter
+    table): wavelet 1e-3 with 2^j level weights, KC 1e-5 and CBC 1e-2 both supervised, db3, 3 levels.
+    ``SplatfactoModelConfig`` holds the same fields (same names) and builds this from them."""
+
+    wavelet_weight: float = 1e-3
+    """weight of the wavelet L1 on the detail subbands"""
+    kc_weight: float = 1e-5
+    """weight of the kurtosis-concentration loss"""
+    cbc_weight: float = 1e-2
+    """weight of the cross-band covariance loss"""
+    wave: str = "db3"
+    """orthogonal Daubechies wavelet of the DWT"""
+    wavelet_levels: int = 3
+    """DWT levels (fewer where the image is too small for them, with a warning)"""
+    wavelet_mode: str = "symmetric"
+    """DWT boundary extension (pywt's names)"""
+    wavelet_weighting: str = "paper"
+    """per-level weights of the wavelet L1: 'paper' 2^j (j=1 finest), 'fine' 2^(J-j+1), 'uniform' 1"""
+    kc_supervised: bool = True
+    """KC compares the render's band kurtosis with the GT's (False: the render's spread alone)"""
+    cbc_supervised: bool = True
+    """CBC compares the render's cross-band covariance with the GT's (False: the render's alone)"""
+    cbc_correlation: bool = False
+    """CBC on band correlations instead of covariances"""
+
+    @property
+    def active(self) -> bool:
+        """Whether any term has a non-zero weight (with all three at zero the loss is off: Splatfacto)."""
+        return self.wavelet_weight > 0 or self.kc_weight > 0 or self.cbc_weight > 0
+
+    def setup(self) -> FrequencyLoss:
+        """The loss module these settings describe (validated: bad names and weights raise ValueError)."""
+        return FrequencyLoss(**dataclasses.asdict(self))
+
+
+_PAPER = FrequencyLossConfig()
 
 
 def _check_finite(x: Tensor, name: str) -> None:
@@ -123,7 +164,7 @@ class _CentredMoments(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, flat: Tensor, inv_rms: Tensor, want_m4: bool, want_cov: bool):
-        if wavelets.uses_compiled_kernels(flat):
+        if backend.compiled(flat):
             return _CentredMoments._forward_cpu(ctx, flat, inv_rms, want_m4, want_cov)
         count = flat.shape[-1]
         z = torch.addcmul(-flat.mean(dim=-1, keepdim=True) * inv_rms, flat, inv_rms)  # (x - mean) / s, fused
@@ -209,7 +250,7 @@ class _CentredMoments(torch.autograd.Function):
 def _level_moments(coeffs: WaveletCoeffs, want_m4: bool, want_cov: bool) -> tuple[list[tuple], Tensor]:
     """Per level (m2 [B, C, 3], m4 or None, cov [B, C, 3, 3] or None) of the RMS-normalized centred subbands,
     and the image power s^2 [B, C, 1] they are normalized by."""
-    if wavelets.uses_compiled_kernels(coeffs.approx):
+    if backend.compiled(coeffs.approx):
         power64 = _image_power_cpu(coeffs)
         power = power64.to(coeffs.approx.dtype)
         inv_rms = torch.rsqrt(power64).unsqueeze(-1)  # [B, C, 1, 1] float64: the compiled pass's scale
@@ -299,7 +340,7 @@ class WaveletBands:
     wavelet_levels: int
     wavelet_mode: str
     cbc_correlation: bool
-    image_shape: tuple[int, int, int, int]
+    image_shape: tuple[int, ...]
 
     def to(self, *args, **kwargs) -> WaveletBands:
         def move(x: Tensor | None) -> Tensor | None:
@@ -319,17 +360,19 @@ class WaveletBands:
 
 def wavelet_bands(
     image: Tensor,
-    wave: str = "db3",
-    wavelet_levels: int = 3,
-    wavelet_mode: str = "symmetric",
-    cbc_correlation: bool = False,
+    wave: str = _PAPER.wave,
+    wavelet_levels: int = _PAPER.wavelet_levels,
+    wavelet_mode: str = _PAPER.wavelet_mode,
+    cbc_correlation: bool = _PAPER.cbc_correlation,
     kurtosis: bool = True,
     covariance: bool = True,
+    warn_dropped_levels: bool = True,
 ) -> WaveletBands:
     """The DWT of image [B, C, H, W] and, when asked, its band kurtosis and L_cov (differentiable; raises
-    ValueError on NaN/Inf); the statistics not asked for stay None."""
+    ValueError on NaN/Inf); the statistics not asked for stay None. Levels the image is too small for are left out
+    (with :func:`dwt2`'s warning unless ``warn_dropped_levels`` is False)."""
     _check_image(image, "image")
-    coeffs = dwt2(image, wave=wave, levels=wavelet_levels, mode=wavelet_mode)
+    coeffs = dwt2(image, wave=wave, levels=wavelet_levels, mode=wavelet_mode, warn=warn_dropped_levels)
     k = spread = l_cov = None
     if kurtosis or covariance:  # (no level: empty kurtosis [B, C, 0], zero spread and L_cov)
         moments, power = _level_moments(coeffs, kurtosis, covariance)
@@ -343,14 +386,19 @@ def wavelet_bands(
 
 
 def prepare_target(
-    gt: Tensor, wave: str = "db3", wavelet_levels: int = 3, wavelet_mode: str = "symmetric",
-    cbc_correlation: bool = False,
+    gt: Tensor,
+    wave: str = _PAPER.wave,
+    wavelet_levels: int = _PAPER.wavelet_levels,
+    wavelet_mode: str = _PAPER.wavelet_mode,
+    cbc_correlation: bool = _PAPER.cbc_correlation,
+    warn_dropped_levels: bool = True,
 ) -> WaveletBands:
     """The ground truth's WaveletBands with every statistic, detached: compute once per image, reuse every step
     (raises ValueError on NaN/Inf naming 'gt')."""
     _check_image(gt, "gt")
     with torch.no_grad():
-        return wavelet_bands(gt.detach(), wave, wavelet_levels, wavelet_mode, cbc_correlation)
+        return wavelet_bands(gt.detach(), wave, wavelet_levels, wavelet_mode, cbc_correlation,
+                             warn_dropped_levels=warn_dropped_levels)
 
 
 def _check_pair(pred: WaveletBands, gt: WaveletBands, with_correlation: bool = False) -> WaveletBands:
@@ -398,7 +446,7 @@ def wavelet_l1(pred: WaveletBands, gt: WaveletBands, wavelet_weighting: str = "p
         return _no_band_loss(pred.coeffs)
     # sum over the 3 orientations of each one's mean = 3 * mean over the level's [B, C, 3, h, w]
     weights = [3.0 * weight for weight in level_weights(pred.coeffs.levels, wavelet_weighting)]
-    if wavelets.uses_compiled_kernels(pred.coeffs.approx):
+    if backend.compiled(pred.coeffs.approx):
         return _WeightedBandL1.apply(weights, [band.detach() for band in gt.coeffs.details], *pred.coeffs.details)
     loss = pred.coeffs.approx.new_zeros(())
     for weight, band_pred, band_gt in zip(weights, pred.coeffs.details, gt.coeffs.details):
@@ -451,7 +499,7 @@ def kc_loss(pred: WaveletBands, gt: WaveletBands | None = None, kc_supervised: b
     if pred.coeffs.levels == 0:
         return _no_band_loss(pred.coeffs)
     k_pred, spread_pred = _need(pred, "kurtosis", "pred"), _need(pred, "spread", "pred")
-    if not kc_supervised:
+    if not kc_supervised or gt is None:  # (gt is None only when unsupervised: checked above)
         return spread_pred.mean()
     per_image = (spread_pred - _need(gt, "spread", "gt")).abs() + (k_pred - _need(gt, "kurtosis", "gt")).abs().sum(dim=-1)
     return per_image.mean()
@@ -470,7 +518,7 @@ def cbc_loss(pred: WaveletBands, gt: WaveletBands | None = None, cbc_supervised:
     if pred.coeffs.levels == 0:
         return _no_band_loss(pred.coeffs)
     l_pred = _need(pred, "l_cov", "pred")
-    if not cbc_supervised:
+    if not cbc_supervised or gt is None:  # (gt is None only when unsupervised: checked above)
         return l_pred.mean()
     return (l_pred - _need(gt, "l_cov", "gt")).abs().mean()
 
@@ -485,27 +533,26 @@ def mean_band_kurtosis(bands: WaveletBands) -> list[float]:
 
 
 class FrequencyLoss(nn.Module):
-    """The paper's three wavelet-domain terms, each already multiplied by its weight (parameters named as in
-    ``SplatfactoModelConfig``).
+    """The paper's three wavelet-domain terms, each already multiplied by its weight (parameters: the fields of
+    :class:`FrequencyLossConfig`, whose defaults are the paper's).
 
     forward(pred [B, C, H, W], target: WaveletBands from :meth:`prepare_target`) -> dict holding only the terms whose
     weight is non-zero among "wavelet_loss", "kc_loss", "cbc_loss": one :func:`wavelet_bands` of pred, then
     :func:`wavelet_l1`, :func:`kc_loss`, :func:`cbc_loss`.
-    Defaults are the paper's (supplementary hyperparameter table): wavelet 1e-3, kc 1e-5, cbc 1e-2, db3, 3 levels.
     """
 
     def __init__(
         self,
-        wavelet_weight: float = 1e-3,
-        kc_weight: float = 1e-5,
-        cbc_weight: float = 1e-2,
-        wave: str = "db3",
-        wavelet_levels: int = 3,
-        wavelet_mode: str = "symmetric",
-        wavelet_weighting: str = "paper",
-        kc_supervised: bool = True,
-        cbc_supervised: bool = True,
-        cbc_correlation: bool = False,
+        wavelet_weight: float = _PAPER.wavelet_weight,
+        kc_weight: float = _PAPER.kc_weight,
+        cbc_weight: float = _PAPER.cbc_weight,
+        wave: str = _PAPER.wave,
+        wavelet_levels: int = _PAPER.wavelet_levels,
+        wavelet_mode: str = _PAPER.wavelet_mode,
+        wavelet_weighting: str = _PAPER.wavelet_weighting,
+        kc_supervised: bool = _PAPER.kc_supervised,
+        cbc_supervised: bool = _PAPER.cbc_supervised,
+        cbc_correlation: bool = _PAPER.cbc_correlation,
     ) -> None:
         super().__init__()
         if wavelet_mode not in MODES:
@@ -525,19 +572,49 @@ class FrequencyLoss(nn.Module):
         self.kc_supervised = kc_supervised
         self.cbc_supervised = cbc_supervised
         self.cbc_correlation = cbc_correlation
+        self._warned_dropped_levels = False
+
+    @property
+    def config(self) -> FrequencyLossConfig:
+        """This loss's settings."""
+        return FrequencyLossConfig(
+            wavelet_weight=self.wavelet_weight, kc_weight=self.kc_weight, cbc_weight=self.cbc_weight, wave=self.wave,
+            wavelet_levels=self.wavelet_levels, wavelet_mode=self.wavelet_mode,
+            wavelet_weighting=self.wavelet_weighting, kc_supervised=self.kc_supervised,
+            cbc_supervised=self.cbc_supervised, cbc_correlation=self.cbc_correlation,
+        )
 
     @property
     def active(self) -> bool:
-        return self.wavelet_weight > 0 or self.kc_weight > 0 or self.cbc_weight > 0
+        return self.config.active
 
     def bands(self, image: Tensor, kurtosis: bool = True, covariance: bool = True) -> WaveletBands:
         """:func:`wavelet_bands` of image [B, C, H, W] with this loss's settings."""
+        self._warn_dropped_levels_once(image)
         return wavelet_bands(image, self.wave, self.wavelet_levels, self.wavelet_mode, self.cbc_correlation,
-                             kurtosis=kurtosis, covariance=covariance)
+                             kurtosis=kurtosis, covariance=covariance, warn_dropped_levels=False)
 
     def prepare_target(self, gt: Tensor) -> WaveletBands:
         """Detached bands and statistics of gt [B, C, H, W] with this loss's settings (cache it per image)."""
-        return prepare_target(gt, self.wave, self.wavelet_levels, self.wavelet_mode, self.cbc_correlation)
+        self._warn_dropped_levels_once(gt)
+        return prepare_target(gt, self.wave, self.wavelet_levels, self.wavelet_mode, self.cbc_correlation,
+                              warn_dropped_levels=False)
+
+    def _warn_dropped_levels_once(self, image: Tensor) -> None:
+        """One warning per loss (i.e. per training run) when an image is too small for the requested levels, not one
+        per image size: a resolution schedule changes the size several times."""
+        if self._warned_dropped_levels or image.dim() != 4 or min(image.shape[-2:]) == 0:
+            return
+        height, width = image.shape[-2:]
+        kept = supported_levels(height, width, self.wave, self.wavelet_levels)
+        if kept < self.wavelet_levels:
+            self._warned_dropped_levels = True
+            warnings.warn(
+                f"FrequencyLoss: a {height}x{width} image supports only {kept} of the {self.wavelet_levels} requested "
+                f"{self.wave} levels; levels an image is too small for are left out (said once, for the first such "
+                "size)",
+                stacklevel=3,
+            )
 
     def forward(self, pred: Tensor, target: WaveletBands) -> dict[str, Tensor]:
         if not self.active:

@@ -4,7 +4,7 @@
 - dssim(pred, gt) = 1 - mean SSIM (:func:`kc_splatfacto.metrics.mean_ssim`): Splatfacto's D-SSIM term. NOT
                     kornia.losses.ssim_loss, which is (1 - SSIM) / 2.
 
-On the CPU the D-SSIM of a prediction against a fixed image runs fused (``losses/_ssim_kernels.py``: the five moments'
+On the CPU (``kc_splatfacto.backend``) the D-SSIM of a prediction against a fixed image runs fused (``losses/_ssim_kernels.py``: the five moments'
 separable blur, the map and its mean in one pass, an analytic backward through the blur's adjoint): kornia's SSIM
 with autograd took ~15 ms of a 50 ms training step at 192x128 (oneDNN copies every depthwise convolution's image into
 blocked layout), the fused one ~1 ms. Same formula, window and padding; it agrees with kornia to float rounding
@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from kc_splatfacto import backend
 from kc_splatfacto.metrics import SSIM_C1, SSIM_C2, SSIM_EPS, SSIM_SIGMA, SSIM_WINDOW, _check_pair, mean_ssim
 
 
@@ -43,7 +44,7 @@ def dssim(pred: Tensor, gt: Tensor, window_size: int = SSIM_WINDOW) -> Tensor:
 
 
 def _fused_eligible(pred: Tensor, gt: Tensor, window_size: int) -> bool:
-    return (pred.device.type == "cpu" and gt.device.type == "cpu" and pred.dtype in (torch.float32, torch.float64)
+    return (backend.compiled(pred, gt) and pred.dtype in (torch.float32, torch.float64)
             and gt.dtype == pred.dtype and not gt.requires_grad and window_size % 2 == 1)
 
 

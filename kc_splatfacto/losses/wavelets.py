@@ -27,6 +27,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from kc_splatfacto import backend
+
 # Boundary modes, named as in PyWavelets.
 MODES = ("symmetric", "reflect", "zero", "periodization")
 # Daubechies orders this module can build (pywt ships db1..db38; spectral factorization in float64 matches its taps
@@ -277,15 +279,9 @@ class _SeparableLevel(torch.autograd.Function):
 _INDEX_MODES = ("symmetric", "reflect", "periodization")
 
 
-def uses_compiled_kernels(x: Tensor) -> bool:
-    """Whether the wavelet losses run x's level, moments and L1 through the numba kernels (CPU tensors) rather than
-    torch ops (other devices; also the tests' oracle, by patching this to False)."""
-    return x.device.type == "cpu"
-
-
 def _level(x: Tensor, wave: str, filter_len: int, mode: str, bank: Tensor) -> tuple[Tensor, Tensor]:
     """One DWT level of x [N, 1, H, W]: (cA [N, 1, h, w], (cH, cV, cD) [N, 3, h, w])."""
-    if uses_compiled_kernels(x) and mode in _INDEX_MODES:
+    if backend.compiled(x) and mode in _INDEX_MODES:
         # (periodization's index map repeats the last sample of an odd axis itself, as PyWavelets does)
         return _SeparableLevel.apply(x, wave, mode)
     out = F.conv2d(_pad(x, filter_len, mode), bank, stride=2)
@@ -309,12 +305,12 @@ def supported_levels(height: int, width: int, wave: str = "db3", levels: int = 3
     return min(levels, dwt_max_level(min(height, width), filter_length(wave)))
 
 
-def dwt2(x: Tensor, wave: str = "db3", levels: int = 3, mode: str = "symmetric") -> WaveletCoeffs:
+def dwt2(x: Tensor, wave: str = "db3", levels: int = 3, mode: str = "symmetric", *, warn: bool = True) -> WaveletCoeffs:
     """Multi-level 2D DWT of x [B, C, H, W]; equals `pywt.wavedec2(x, wave, mode=mode, level=levels)` reversed.
 
     Returns WaveletCoeffs(approx [B, C, h, w], details finest first, each [B, C, 3, h_j, w_j] in (cH, cV, cD) order).
-    Levels the image cannot support (PyWavelets' `dwt_max_level` rule on min(H, W)) are left out with one warning;
-    with none left, approx is the image itself. float16/bfloat16 inputs are transformed in float32 (the output is
+    Levels the image cannot support (PyWavelets' `dwt_max_level` rule on min(H, W)) are left out with one warning
+    (none with ``warn=False``: a caller that warns once itself, as ``FrequencyLoss`` does); with none left, approx is the image itself. float16/bfloat16 inputs are transformed in float32 (the output is
     float32); other dtypes and any device are kept.
     """
     if x.dim() != 4:
@@ -328,7 +324,7 @@ def dwt2(x: Tensor, wave: str = "db3", levels: int = 3, mode: str = "symmetric")
     if height == 0 or width == 0:
         raise ValueError(f"dwt2 got an empty image of size {height}x{width}")
     kept = supported_levels(height, width, wave, levels)
-    if kept < levels:
+    if kept < levels and warn:
         warnings.warn(
             f"dwt2: a {height}x{width} image supports only {kept} of the {levels} requested {wave} levels "
             f"(filter length {flen}); the remaining {levels - kept} are left out",

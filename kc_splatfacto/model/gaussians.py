@@ -12,8 +12,8 @@ import math
 import numpy as np
 import torch
 
-SH_C0 = 0.28209479177387814
-"""degree-0 real spherical harmonic, 1 / (2 sqrt(pi))"""
+from kc_splatfacto.render.constants import SH_C0
+
 INITIAL_OPACITY = 0.1
 """Splatfacto's initial opacity of every Gaussian"""
 KNN_NEIGHBOURS = 3

@@ -19,7 +19,7 @@ SPLIT_SCALE_DIVISOR = 1.6
 
 @torch.no_grad()
 def _update_param_with_optimizer(
-    param_fn: Callable[[str, torch.Tensor], torch.Tensor],
+    param_fn: Callable[[str, torch.Tensor], torch.nn.Parameter],
     optimizer_fn: Callable[[str, torch.Tensor], torch.Tensor],
     params: dict[str, torch.nn.Parameter] | torch.nn.ParameterDict,
     optimizers: dict[str, torch.optim.Optimizer],
@@ -61,7 +61,7 @@ def duplicate(params, optimizers: dict[str, torch.optim.Optimizer], state: dict[
     """Append a copy of every Gaussian where ``mask`` [N] is True (copies go at the end; their Adam state is zero)."""
     sel = torch.where(mask)[0]
 
-    def param_fn(name: str, p: torch.Tensor) -> torch.Tensor:
+    def param_fn(name: str, p: torch.Tensor) -> torch.nn.Parameter:
         return _new_param(torch.cat([p, p[sel]]), p)
 
     def optimizer_fn(key: str, v: torch.Tensor) -> torch.Tensor:
@@ -95,7 +95,7 @@ def split(
     noise = torch.randn(n_samples, len(sel), 3, device=scales.device, dtype=scales.dtype)
     samples = torch.einsum("nij,nj,bnj->bni", rotmats, scales, noise)  # [S, M, 3]
 
-    def param_fn(name: str, p: torch.Tensor) -> torch.Tensor:
+    def param_fn(name: str, p: torch.Tensor) -> torch.nn.Parameter:
         repeats = [n_samples] + [1] * (p.dim() - 1)
         if name == "means":
             p_split = (p[sel] + samples).reshape(-1, 3)
@@ -126,7 +126,7 @@ def remove(params, optimizers: dict[str, torch.optim.Optimizer], state: dict[str
     """Drop every Gaussian where ``mask`` [N] is True."""
     sel = torch.where(~mask)[0]
 
-    def param_fn(name: str, p: torch.Tensor) -> torch.Tensor:
+    def param_fn(name: str, p: torch.Tensor) -> torch.nn.Parameter:
         return _new_param(p[sel], p)
 
     def optimizer_fn(key: str, v: torch.Tensor) -> torch.Tensor:
@@ -143,7 +143,7 @@ def reset_opa(params, optimizers: dict[str, torch.optim.Optimizer], state: dict[
     """Clamp every opacity to at most ``value`` (in [0, 1]) and zero the opacities' Adam moments."""
     max_logit = torch.logit(torch.tensor(value, dtype=torch.float64)).item()
 
-    def param_fn(name: str, p: torch.Tensor) -> torch.Tensor:
+    def param_fn(name: str, p: torch.Tensor) -> torch.nn.Parameter:
         return _new_param(torch.clamp(p, max=max_logit), p)
 
     def optimizer_fn(key: str, v: torch.Tensor) -> torch.Tensor:

@@ -17,9 +17,12 @@ import torch
 import torch.nn.functional as F
 
 from kc_splatfacto.data.outputs import Cameras
-from kc_splatfacto.model.gaussians import init_gaussian_params
+from kc_splatfacto.losses.frequency import FrequencyLoss, FrequencyLossConfig
 from kc_splatfacto.model import ops
+from kc_splatfacto.model.gaussians import init_gaussian_params
 from kc_splatfacto.model.strategy import DefaultStrategy, NoGaussiansLeftError
+from kc_splatfacto.render.constants import FAR_PLANE, NEAR_PLANE
+from kc_splatfacto.render.rasterization import RenderMode
 
 EVAL_BACKGROUND = (0.1490, 0.1647, 0.2157)
 """Splatfacto's fixed background outside training when training uses random backgrounds (viser's grey)"""
@@ -27,9 +30,8 @@ SCALE_REG_WEIGHT = 0.1
 """PhysGaussian scale regularization weight in Splatfacto"""
 SCALE_REG_EVERY = 10
 """Splatfacto evaluates the scale regularizer every 10th step only"""
-FREQUENCY_LOSS_FIELDS = ("wavelet_weight", "kc_weight", "cbc_weight", "wave", "wavelet_levels", "wavelet_mode",
-                         "wavelet_weighting", "kc_supervised", "cbc_supervised", "cbc_correlation")
-"""the config fields that build the FrequencyLoss (its parameters have the same names)"""
+_PAPER = FrequencyLossConfig()
+"""the paper's frequency-loss settings: the defaults of the model config's DWT fields (its weights default to 0)"""
 
 
 @dataclass(frozen=True)
@@ -114,19 +116,19 @@ class SplatfactoModelConfig:
     """weight of the kurtosis-concentration loss (KC-3DGS: 1e-5)"""
     cbc_weight: float = 0.0
     """weight of the cross-band covariance loss (KC-3DGS: 1e-2)"""
-    wave: Literal["haar", "db1", "db2", "db3", "db4", "db5", "db6", "db7", "db8", "db9", "db10"] = "db3"
+    wave: Literal["haar", "db1", "db2", "db3", "db4", "db5", "db6", "db7", "db8", "db9", "db10"] = _PAPER.wave  # type: ignore[assignment]
     """orthogonal Daubechies wavelet of the DWT (KC-3DGS: db3)"""
-    wavelet_levels: int = 3
+    wavelet_levels: int = _PAPER.wavelet_levels
     """DWT levels (fewer where the image is too small for them, with a warning)"""
-    wavelet_mode: Literal["symmetric", "reflect", "zero", "periodization"] = "symmetric"
+    wavelet_mode: Literal["symmetric", "reflect", "zero", "periodization"] = _PAPER.wavelet_mode  # type: ignore[assignment]
     """DWT boundary extension (pywt's names; docs/losses.md measures why symmetric)"""
-    wavelet_weighting: Literal["paper", "fine", "uniform"] = "paper"
+    wavelet_weighting: Literal["paper", "fine", "uniform"] = _PAPER.wavelet_weighting  # type: ignore[assignment]
     """per-level weights of the wavelet L1: 'paper' 2^j (j=1 finest), 'fine' 2^(J-j+1), 'uniform' 1"""
-    kc_supervised: bool = True
+    kc_supervised: bool = _PAPER.kc_supervised
     """KC compares the render's band kurtosis with the GT's (False: the unsupervised spread of the render alone)"""
-    cbc_supervised: bool = True
+    cbc_supervised: bool = _PAPER.cbc_supervised
     """CBC compares the render's cross-band covariance with the GT's (False: the render's alone)"""
-    cbc_correlation: bool = False
+    cbc_correlation: bool = _PAPER.cbc_correlation
     """CBC on correlations instead of covariances (the 'scaled CBC' ablation)"""
 
     def scaled(self, steps: int) -> int:
@@ -145,6 +147,41 @@ class SplatfactoModelConfig:
             sh_degree_interval=self.scaled(self.sh_degree_interval),
             stop_screen_size_at=self.scaled(self.stop_screen_size_at),
             stop_split_at=self.scaled(self.stop_split_at),
+        )
+
+    def frequency_loss_config(self) -> FrequencyLossConfig:
+        """The wavelet/KC/CBC settings of this model (its fields of the same names)."""
+        return FrequencyLossConfig(
+            wavelet_weight=self.wavelet_weight, kc_weight=self.kc_weight, cbc_weight=self.cbc_weight, wave=self.wave,
+            wavelet_levels=self.wavelet_levels, wavelet_mode=self.wavelet_mode,
+            wavelet_weighting=self.wavelet_weighting, kc_supervised=self.kc_supervised,
+            cbc_supervised=self.cbc_supervised, cbc_correlation=self.cbc_correlation,
+        )
+
+    def density_strategy(self, num_train_data: int) -> DefaultStrategy:
+        """Density control as Splatfacto 1.1.5 configures gsplat's ``DefaultStrategy`` from these fields (step counts
+        after ``steps_scale``); ``num_train_data`` sets the pause after each opacity reset."""
+        schedule = self.step_schedule()
+        refine_every = schedule.refine_every
+        reset_every = schedule.reset_alpha_every
+        return DefaultStrategy(
+            prune_opa=self.cull_alpha_thresh,
+            grow_grad2d=self.densify_grad_thresh,
+            grow_scale3d=self.densify_size_thresh,
+            grow_scale2d=self.split_screen_size,
+            prune_scale3d=self.cull_scale_thresh,
+            prune_scale2d=self.cull_screen_size,
+            refine_scale2d_stop_iter=schedule.stop_screen_size_at,
+            refine_start_iter=schedule.warmup_length,
+            refine_stop_iter=schedule.stop_split_at,
+            reset_every=reset_every,
+            refine_every=refine_every,
+            # Splatfacto waits one pass over the training images after a reset; under heavy step compression that
+            # pass could outlast the reset period, so it is capped at half of it.
+            pause_refine_after_reset=min(int(num_train_data) + refine_every, reset_every // 2),
+            absgrad=self.use_absgrad,
+            n_split_samples=self.n_split_samples,
+            max_gaussians=self.max_num_gaussians,
         )
 
     def setup(
@@ -223,44 +260,25 @@ class SplatfactoModel(torch.nn.Module):
     ):
         super().__init__()
         self.config = config
-        self.schedule = schedule = config.step_schedule()
+        self.schedule = config.step_schedule()
         self.scene_scale = float(scene_scale)
         self.num_train_data = int(num_train_data)
-        use_seed = seed_points is not None and not config.random_init
+        seeds = seed_points if seed_points is not None and not config.random_init else (None, None)
         self.gauss_params = init_gaussian_params(
-            seed_points[0] if use_seed else None,
-            seed_points[1] if use_seed else None,
+            seeds[0],
+            seeds[1],
             sh_degree=config.sh_degree,
             scene_scale=self.scene_scale,
             num_random=config.num_random,
             random_scale=config.random_scale,
         )
-        refine_every = schedule.refine_every
-        reset_every = schedule.reset_alpha_every
-        self.strategy = DefaultStrategy(
-            prune_opa=config.cull_alpha_thresh,
-            grow_grad2d=config.densify_grad_thresh,
-            grow_scale3d=config.densify_size_thresh,
-            grow_scale2d=config.split_screen_size,
-            prune_scale3d=config.cull_scale_thresh,
-            prune_scale2d=config.cull_screen_size,
-            refine_scale2d_stop_iter=schedule.stop_screen_size_at,
-            refine_start_iter=schedule.warmup_length,
-            refine_stop_iter=schedule.stop_split_at,
-            reset_every=reset_every,
-            refine_every=refine_every,
-            # Splatfacto waits one pass over the training images after a reset; under heavy step compression that
-            # pass could outlast the reset period, so it is capped at half of it.
-            pause_refine_after_reset=min(self.num_train_data + refine_every, reset_every // 2),
-            absgrad=config.use_absgrad,
-            n_split_samples=config.n_split_samples,
-            max_gaussians=config.max_num_gaussians,
-        )
+        self.strategy = config.density_strategy(self.num_train_data)
         self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene_scale)
         self.step = 0
         self.info: dict[str, Any] = {}
         self.register_buffer("background_color", self._fixed_background(), persistent=False)
-        self._frequency_loss = None
+        self._frequency_loss: FrequencyLoss | None = None
+        self._kurtosis_probe: FrequencyLoss | None = None
         self._wavelet_targets: dict[tuple[int, int], Any] = {}
 
     # ----------------------------------------------------------------------------------------------- parameters
@@ -327,7 +345,7 @@ class SplatfactoModel(torch.nn.Module):
     def _get_background_color(self) -> torch.Tensor:
         if self.training and self.config.background_color == "random":
             return torch.rand(3, device=self.device)
-        return self.background_color.to(self.device)
+        return self.get_buffer("background_color").to(self.device)
 
     def sh_degree_to_use(self) -> int:
         return min(self.step // self.schedule.sh_degree_interval, self.config.sh_degree)
@@ -355,6 +373,7 @@ class SplatfactoModel(torch.nn.Module):
             raise ValueError(f"get_outputs renders one camera at a time, got {len(camera)}")
         camera = rescale_cameras(camera.to(self.device), self.get_downscale_factor())
         width, height = int(camera.widths[0]), int(camera.heights[0])
+        colors: torch.Tensor | SplitSH
         if self.config.sh_degree > 0:
             # the two parameters as they are: the cpu backend reads them in place (no [N, 16, 3] copy per step)
             colors = SplitSH(self.features_dc[:, None, :], self.features_rest)
@@ -362,7 +381,7 @@ class SplatfactoModel(torch.nn.Module):
         else:
             colors = torch.sigmoid(self.features_dc)
             sh_degree = None
-        render_mode = "RGB+ED" if (self.config.output_depth_during_training or not self.training) else "RGB"
+        render_mode: RenderMode = "RGB+ED" if (self.config.output_depth_during_training or not self.training) else "RGB"
         render, alpha, info = rasterization(
             means=self.means,
             quats=self.quats,
@@ -374,8 +393,8 @@ class SplatfactoModel(torch.nn.Module):
             width=width,
             height=height,
             sh_degree=sh_degree,
-            near_plane=0.01,
-            far_plane=1e10,
+            near_plane=NEAR_PLANE,
+            far_plane=FAR_PLANE,
             render_mode=render_mode,
             rasterize_mode=self.config.rasterize_mode,
             absgrad=self.strategy.absgrad,
@@ -438,26 +457,27 @@ class SplatfactoModel(torch.nn.Module):
 
     # ----------------------------------------------------------------------------------------------- losses
     @property
-    def frequency_loss(self):
-        """KC-3DGS's wavelet/KC/CBC module, built on first use (None when every weight is zero)."""
-        cfg = self.config
-        if cfg.wavelet_weight == 0 and cfg.kc_weight == 0 and cfg.cbc_weight == 0:
-            return None
+    def frequency_loss(self) -> FrequencyLoss | None:
+        """KC-3DGS's wavelet/KC/CBC module, built from the config on first use (None when every weight is zero)."""
         if self._frequency_loss is None:
-            from kc_splatfacto.losses.frequency import FrequencyLoss
-
-            self._frequency_loss = FrequencyLoss(**{name: getattr(cfg, name) for name in FREQUENCY_LOSS_FIELDS})
+            settings = self.config.frequency_loss_config()
+            if not settings.active:
+                return None
+            self._frequency_loss = settings.setup()
         return self._frequency_loss
 
     def wavelet_target(self, gt_bchw: torch.Tensor, image_idx: int | None) -> Any:
         """The (masked, composited) GT's wavelet coefficients and statistics [1, 3, h, w], computed once per
         (training image, resolution); ``image_idx`` None: not cached."""
+        frequency_loss = self.frequency_loss
+        if frequency_loss is None:
+            raise RuntimeError("wavelet_target: every frequency-loss weight is zero (no loss to prepare a target for)")
         if image_idx is None:
-            return self.frequency_loss.prepare_target(gt_bchw)
+            return frequency_loss.prepare_target(gt_bchw)
         key = (int(image_idx), self.get_downscale_factor())
         target = self._wavelet_targets.get(key)
         if target is None:
-            target = self._wavelet_targets[key] = self.frequency_loss.prepare_target(gt_bchw)
+            target = self._wavelet_targets[key] = frequency_loss.prepare_target(gt_bchw)
         return target
 
     def get_loss_dict(self, outputs: dict[str, Any], batch: dict[str, Any]) -> dict[str, torch.Tensor]:
@@ -542,12 +562,15 @@ class SplatfactoModel(torch.nn.Module):
 
         ``image`` is an [H, W, 3] image or the GT's cached WaveletBands (whose kurtosis is read, not recomputed).
         """
-        from kc_splatfacto.losses.frequency import WaveletBands, mean_band_kurtosis, wavelet_bands
+        from kc_splatfacto.losses.frequency import WaveletBands, mean_band_kurtosis
 
         if not isinstance(image, WaveletBands):
+            if self._kurtosis_probe is None:
+                # the loss itself, or (every weight zero) a module with the same DWT settings: either warns once per
+                # run when the image is too small for the levels
+                self._kurtosis_probe = self.frequency_loss or self.config.frequency_loss_config().setup()
             with torch.no_grad():
-                image = wavelet_bands(_bchw(image.detach().float()), self.config.wave, self.config.wavelet_levels,
-                                      self.config.wavelet_mode, covariance=False)
+                image = self._kurtosis_probe.bands(_bchw(image.detach().float()), covariance=False)
         return mean_band_kurtosis(image)
 
     # ----------------------------------------------------------------------------------------------- density control

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from kc_splatfacto import backend
 from kc_splatfacto.model import ops
 
 
@@ -39,7 +40,7 @@ def _stats_kernel_applies(grads: torch.Tensor, radii: torch.Tensor, state: dict[
     several cameras keep the torch ops, whose duplicate-index radius update it does not reproduce."""
     stats = [state["grad2d"], state["count"]] + ([state["radii"]] if state.get("radii") is not None else [])
     return (
-        grads.device.type == "cpu" and grads.dtype == torch.float32 and grads.dim() == 3 and grads.shape[0] == 1
+        backend.compiled(grads) and grads.dtype == torch.float32 and grads.dim() == 3 and grads.shape[0] == 1
         and radii.dim() == 3 and radii.dtype == torch.int32 and radii.shape == grads.shape
         and all(t.dtype == torch.float32 and t.is_contiguous() and t.shape[0] == grads.shape[1] for t in stats)
         and grads.is_contiguous() and radii.is_contiguous()
@@ -179,7 +180,7 @@ class DefaultStrategy:
         if step < self.refine_scale2d_stop_iter:
             is_split |= state["radii"] > self.grow_scale2d
         if self.max_gaussians is not None:
-            is_dupli, is_split = self._cap_growth(grads, is_dupli, is_split, len(params["means"]))
+            is_dupli, is_split = self._cap_growth(grads, is_dupli, is_split, len(params["means"]), self.max_gaussians)
             n_dupli = int(is_dupli.sum())
         n_split = int(is_split.sum())
         if n_dupli > 0:
@@ -191,10 +192,10 @@ class DefaultStrategy:
         return n_dupli, n_split
 
     def _cap_growth(
-        self, grads: torch.Tensor, is_dupli: torch.Tensor, is_split: torch.Tensor, n_gaussian: int
+        self, grads: torch.Tensor, is_dupli: torch.Tensor, is_split: torch.Tensor, n_gaussian: int, max_gaussians: int
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Keep the highest-gradient candidates whose added Gaussians fit under ``max_gaussians``."""
-        budget = max(self.max_gaussians - n_gaussian, 0)
+        budget = max(max_gaussians - n_gaussian, 0)
         cost = is_dupli.long() + is_split.long() * (self.n_split_samples - 1)
         if int(cost.sum()) <= budget:
             return is_dupli, is_split

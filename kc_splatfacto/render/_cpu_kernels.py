@@ -16,7 +16,8 @@ Layout shared by the kernels (all arrays C-contiguous numpy):
   ``reduce_isect_grads`` in a fixed order per Gaussian (deterministic).
 
 Kernel families: the 4x4-block kernels (``*_blocks``, 16 px tiles: ``constants.BLOCK_TILE_SIZE``) and the scalar
-kernels (any other tile size). Both evaluate a Gaussian at a pixel through ``_gaussian_sigma`` and ``_alpha_at``
+kernels (any other tile size); docs/rasterizer.md ("Two compositing families") measures why both stay. Every kernel
+reads an intersection through ``_load_gaussian``; both families evaluate a Gaussian at a pixel through ``_gaussian_sigma`` and ``_alpha_at``
 (the branch-free float32 ``exp_neg``), so they keep and skip the same (pixel, Gaussian) pairs; their colours differ
 only by float32 (blocks) vs float64 (scalar forward) accumulation, up to about 2.4e-7.
 
@@ -178,6 +179,19 @@ def _row_range(bounded, k_cut, k_det, k_b, gx, dy, pixel_offset, lo, hi):
     return int(first), int(last) + 1
 
 
+@njit(inline="always")
+def _load_gaussian(packed, m, pixel_offset, x0, y0, x1, y1):
+    """Intersection ``m``'s Gaussian and the pixels of the tile box ``[x0, x1) x [y0, y1)`` its ellipse's extent
+    covers: (x, y, conic a, b, c, opacity, sigma_cut, (first, end) column, (first, end) row); a range is empty
+    (end <= first) when the ellipse misses the tile. Every kernel's per-intersection prologue."""
+    gx = packed[m, PACK_X]
+    gy = packed[m, PACK_Y]
+    j_first, j_end = _pixel_range(gx, packed[m, PACK_EXTENT_X], pixel_offset, x0, x1)
+    i_first, i_end = _pixel_range(gy, packed[m, PACK_EXTENT_Y], pixel_offset, y0, y1)
+    return (gx, gy, packed[m, PACK_CONIC_A], packed[m, PACK_CONIC_B], packed[m, PACK_CONIC_C], packed[m, PACK_OPACITY],
+            packed[m, PACK_SIGMA_CUT], j_first, j_end, i_first, i_end)
+
+
 @njit(parallel=True, cache=True, fastmath=False)
 def rasterize_fwd(
     packed,
@@ -224,15 +238,8 @@ def rasterize_fwd(
         for m in range(start, end):
             if n_done == n_pix:
                 break
-            gx = packed[m, PACK_X]
-            gy = packed[m, PACK_Y]
-            ca = packed[m, PACK_CONIC_A]
-            cb = packed[m, PACK_CONIC_B]
-            cc = packed[m, PACK_CONIC_C]
-            op = packed[m, PACK_OPACITY]
-            sigma_cut = packed[m, PACK_SIGMA_CUT]
-            j_first, j_end = _pixel_range(gx, packed[m, PACK_EXTENT_X], pixel_offset, x0, x1)
-            i_first, i_end = _pixel_range(gy, packed[m, PACK_EXTENT_Y], pixel_offset, y0, y1)
+            gx, gy, ca, cb, cc, op, sigma_cut, j_first, j_end, i_first, i_end = _load_gaussian(
+                packed, m, pixel_offset, x0, y0, x1, y1)
             bounded, k_cut, k_det, k_b = _ellipse_rows(ca, cb, cc, sigma_cut)
             for i in range(i_first, i_end):
                 dy = gy - (_F32(i) + pixel_offset)
@@ -338,15 +345,8 @@ def rasterize_bwd(
 
         v_rgb = np.zeros(n_channels, dtype=np.float64)
         for m in range(min(tile_last, end - 1), start - 1, -1):
-            gx = packed[m, PACK_X]
-            gy = packed[m, PACK_Y]
-            ca = packed[m, PACK_CONIC_A]
-            cb = packed[m, PACK_CONIC_B]
-            cc = packed[m, PACK_CONIC_C]
-            op = packed[m, PACK_OPACITY]
-            sigma_cut = packed[m, PACK_SIGMA_CUT]
-            j_first, j_end = _pixel_range(gx, packed[m, PACK_EXTENT_X], pixel_offset, x0, x1)
-            i_first, i_end = _pixel_range(gy, packed[m, PACK_EXTENT_Y], pixel_offset, y0, y1)
+            gx, gy, ca, cb, cc, op, sigma_cut, j_first, j_end, i_first, i_end = _load_gaussian(
+                packed, m, pixel_offset, x0, y0, x1, y1)
             bounded, k_cut, k_det, k_b = _ellipse_rows(ca, cb, cc, sigma_cut)
             for k in range(n_channels):
                 v_rgb[k] = 0.0
@@ -584,18 +584,9 @@ def rasterize_fwd_blocks(
         for m in range(start, end):
             if tile_live == 0:
                 break
-            gx = packed[m, PACK_X]
-            gy = packed[m, PACK_Y]
-            ca = packed[m, PACK_CONIC_A]
-            cb = packed[m, PACK_CONIC_B]
-            cc = packed[m, PACK_CONIC_C]
-            op = packed[m, PACK_OPACITY]
-            sigma_cut = packed[m, PACK_SIGMA_CUT]
-            j_first, j_end = _pixel_range(gx, packed[m, PACK_EXTENT_X], pixel_offset, x0, x1)
-            if j_end <= j_first:
-                continue
-            i_first, i_end = _pixel_range(gy, packed[m, PACK_EXTENT_Y], pixel_offset, y0, y1)
-            if i_end <= i_first:
+            gx, gy, ca, cb, cc, op, sigma_cut, j_first, j_end, i_first, i_end = _load_gaussian(
+                packed, m, pixel_offset, x0, y0, x1, y1)
+            if j_end <= j_first or i_end <= i_first:
                 continue
             bounded, k_cut, k_det, k_b = _ellipse_rows(ca, cb, cc, sigma_cut)
             mi = np.int32(m)
@@ -726,18 +717,9 @@ def rasterize_bwd_blocks(
         sums = np.empty((GRAD_HEAD + n_channels, LANES), dtype=np.float32)
         pair_sums = np.empty(LANES // 2, dtype=np.float64)
         for m in range(min(tile_last, end - 1), start - 1, -1):
-            gx = packed[m, PACK_X]
-            gy = packed[m, PACK_Y]
-            ca = packed[m, PACK_CONIC_A]
-            cb = packed[m, PACK_CONIC_B]
-            cc = packed[m, PACK_CONIC_C]
-            op = packed[m, PACK_OPACITY]
-            sigma_cut = packed[m, PACK_SIGMA_CUT]
-            j_first, j_end = _pixel_range(gx, packed[m, PACK_EXTENT_X], pixel_offset, x0, x1)
-            if j_end <= j_first:
-                continue
-            i_first, i_end = _pixel_range(gy, packed[m, PACK_EXTENT_Y], pixel_offset, y0, y1)
-            if i_end <= i_first:
+            gx, gy, ca, cb, cc, op, sigma_cut, j_first, j_end, i_first, i_end = _load_gaussian(
+                packed, m, pixel_offset, x0, y0, x1, y1)
+            if j_end <= j_first or i_end <= i_first:
                 continue
             bounded, k_cut, k_det, k_b = _ellipse_rows(ca, cb, cc, sigma_cut)
             sums[:, :] = zero

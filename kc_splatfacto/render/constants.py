@@ -37,7 +37,8 @@ EXTENT_SIGMA = 3.33
 TILE_SIZE = 16
 # The fast CPU path's vectorized kernels (render/_cpu_kernels.py) run for tiles of BLOCK_TILE_SIZE px only (other
 # tile sizes take its scalar kernels): a tile is BLOCKS_PER_TILE blocks of BLOCK_SIZE x BLOCK_SIZE pixels, and the
-# LANES pixels of one block are processed as branch-free SIMD lanes.
+# LANES pixels of one block are processed as branch-free SIMD lanes. The block count is a compile-time constant on
+# purpose: with a run-time count the forward kernel ran 2.2x slower (docs/rasterizer.md, "Two compositing families").
 BLOCK_TILE_SIZE = 16
 BLOCK_SIZE = 4
 LANES = BLOCK_SIZE * BLOCK_SIZE
@@ -51,6 +52,8 @@ ISECT_KEY_HIGH_BITS = 32
 SH_MAX_DEGREE = 3
 # Colours from SH are shifted by +0.5 and clamped at 0 ("apple-to-apple with Inria's CUDA backend").
 SH_COLOR_OFFSET = 0.5
+# 1 / (2 sqrt(pi)) as gsplat writes it: one float64 ulp below the correctly rounded value, the same float32 (the
+# compiled projection evaluates SH in float64, so this literal is part of the frozen numerics).
 SH_C0 = 0.2820947917738781
 SH_C1 = 0.48860251190292
 SH_C2 = (

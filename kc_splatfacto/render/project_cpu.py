@@ -12,7 +12,7 @@ NaN/inf in means, quats, scales, opacities or SH coefficients are found by the f
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple, Optional, Union
+from typing import Callable, Optional, Union
 
 import numpy as np
 import torch
@@ -20,10 +20,17 @@ from torch import Tensor
 
 from . import _project_kernels as PK
 from .constants import (
-    ALPHA_THRESHOLD, EXTENT_SIGMA, FOV_CLAMP_MARGIN, SH_C0, SH_C1, SH_C2, SH_C3, SH_COLOR_OFFSET,
+    ALPHA_THRESHOLD,
+    EXTENT_SIGMA,
+    FOV_CLAMP_MARGIN,
+    SH_C0,
+    SH_C1,
+    SH_C2,
+    SH_C3,
+    SH_COLOR_OFFSET,
 )
 from .errors import NonFiniteInputError, non_finite_message
-from .projection import RADIUS_MAX
+from .projection import RADIUS_MAX, ProjectedSplats
 from .sh import SplitSH
 
 __all__ = ["ProjectedSplats", "project_and_shade_cpu"]
@@ -32,17 +39,6 @@ _SH_CONSTS = np.array((SH_C0, SH_C1) + tuple(SH_C2) + tuple(SH_C3), np.float64)
 assert _SH_CONSTS.shape == (PK.N_SH_CONSTS,)
 # the reference compares float32 opacities with the threshold rounded to float32
 _ALPHA_THRESHOLD_F32 = float(np.float32(ALPHA_THRESHOLD))
-
-
-class ProjectedSplats(NamedTuple):
-    """Per (camera, Gaussian) outputs; culled pairs have radii 0 and zeros elsewhere (colour ``max(0.5, 0)``)."""
-
-    radii: Tensor  # [C, N, 2] int32
-    means2d: Tensor  # [C, N, 2]
-    depths: Tensor  # [C, N]
-    conics: Tensor  # [C, N, 3]
-    opacities: Tensor  # [C, N] opacity (times the compensation in antialiased mode)
-    colors: Optional[Tensor]  # [C, N, 3] max(SH + 0.5, 0), or None without SH
 
 
 def _np(t: Tensor) -> np.ndarray:

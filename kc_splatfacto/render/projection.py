@@ -150,6 +150,18 @@ class Projection(NamedTuple):
     compensations: Optional[Tensor]  # [C, N] antialiasing opacity factor, or None
 
 
+class ProjectedSplats(NamedTuple):
+    """Per (camera, Gaussian) inputs of the compositing, from the compiled projection (``project_cpu``) or the torch
+    one; culled pairs have radii 0 and zeros elsewhere (SH colour ``max(0.5, 0)``)."""
+
+    radii: Tensor  # [C, N, 2] int32
+    means2d: Tensor  # [C, N, 2]
+    depths: Tensor  # [C, N]
+    conics: Tensor  # [C, N, 3]
+    opacities: Tensor  # [C, N] opacity (times the compensation in antialiased mode)
+    colors: Optional[Tensor]  # [C, N, D]: max(SH + 0.5, 0) (D = 3), or None from project_cpu without SH
+
+
 def fully_fused_projection(
     means: Tensor,
     quats: Tensor,

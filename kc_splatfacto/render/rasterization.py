@@ -1,9 +1,17 @@
 """``rasterization()``: gsplat 1.5.3's call and return contract (unpacked, pinhole), with three backends.
 
-- ``"torch"``: the reference (:func:`rasterize_to_pixels_torch`), differentiable by autograd; slow.
-- ``"cpu"``: the compiled per-pixel kernels (``rasterize_cpu.rasterize_to_pixels_cpu``), same projection/SH/tiles.
-- ``"gsplat"``: ``gsplat.rasterization`` itself; needs gsplat installed and CUDA tensors (a clear error otherwise).
-- ``"auto"``: gsplat for CUDA tensors (an error when gsplat is missing), cpu for CPU tensors.
+:func:`rasterization` checks the request (:func:`resolve_backend`) and hands it to one function per backend:
+
+- ``"torch"`` (:func:`_rasterization_torch`): the reference, every stage in torch ops (projection, SH, tile binning,
+  :func:`rasterize_to_pixels_torch`), differentiable by autograd; slow; the tests' oracle.
+- ``"cpu"`` (:func:`_rasterization_cpu`): compiled numba kernels with hand-written backward passes: projection and SH
+  in one pass (``project_cpu``; float32/float64 inputs, the torch projection for other dtypes), tile binning
+  (``tiles.bin_tiles_cpu``), compositing (``rasterize_cpu.rasterize_to_pixels_cpu``).
+- ``"gsplat"`` (:func:`_rasterization_gsplat`): ``gsplat.rasterization`` itself; needs gsplat and CUDA tensors.
+- ``"auto"``: gsplat for CUDA tensors (an error when gsplat is missing), cpu for CPU tensors, or torch when the
+  reference is forced (``kc_splatfacto.backend``: ``KC_SPLATFACTO_BACKEND=torch`` or ``backend.torch_reference()``).
+
+The cpu and torch backends share the tail (:func:`_composite`: render-mode channels, binning, compositing, meta).
 """
 
 from __future__ import annotations
@@ -14,9 +22,11 @@ from typing import Callable, Literal, Optional
 import torch
 from torch import Tensor
 
+from kc_splatfacto import backend as backend_switch
+
 from .constants import EPS2D, EXPECTED_DEPTH_ALPHA_MIN, FAR_PLANE, NEAR_PLANE, TILE_SIZE
 from .errors import NonFiniteInputError, non_finite_message
-from .projection import fully_fused_projection
+from .projection import ProjectedSplats, fully_fused_projection
 from .rasterize_torch import rasterize_to_pixels_torch
 from .sh import SplitSH, sh_to_rgb
 from .tiles import bin_tiles_cpu, isect_offset_encode, isect_tiles, tile_grid
@@ -46,7 +56,8 @@ def _cpu_rasterizer() -> Optional[Callable]:
 
 
 def resolve_backend(backend: str, device: torch.device) -> str:
-    """The concrete backend for ``backend`` and tensors on ``device``; raises on impossible requests.
+    """The concrete backend for ``backend`` and tensors on ``device``; raises on impossible requests. "auto" gives
+    "torch" while the reference is forced (:mod:`kc_splatfacto.backend`); an explicit backend is always honoured.
 
     Raises:
         ValueError: unknown backend, or "cpu" asked with non-CPU tensors.
@@ -57,6 +68,8 @@ def resolve_backend(backend: str, device: torch.device) -> str:
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if backend == "auto":
+        if backend_switch.reference_forced():
+            return "torch"
         if device.type == "cuda":
             if _gsplat_available():
                 return "gsplat"
@@ -101,7 +114,7 @@ def _match_numba_threads() -> None:
     within a step, do not oversubscribe the cores; both follow ``torch.set_num_threads``."""
     import numba
 
-    wanted = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
+    wanted = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
     if numba.get_num_threads() != wanted:
         numba.set_num_threads(wanted)
 
@@ -141,7 +154,8 @@ def _check_inputs(
     if int(width) != width or int(height) != height or width < 1 or height < 1:
         raise ValueError(f"width and height must be positive integers, got width={width}, height={height}")
     if sh_degree is None:
-        if not (colors.dim() == 2 and colors.shape[0] == n) and not (colors.dim() == 3 and colors.shape[:2] == (c, n)):
+        dim = len(colors.shape)
+        if not (dim == 2 and colors.shape[0] == n) and not (dim == 3 and colors.shape[:2] == (c, n)):
             raise ValueError(
                 f"colors must be [N, D] or [C, N, D] (N={n}, C={c}) when sh_degree is None, got {tuple(colors.shape)}; "
                 "pass sh_degree for SH coefficients [N, K, 3]"
@@ -166,7 +180,7 @@ def _check_inputs(
         return
     for name, tensor in (
         ("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
-        ("colors", colors), ("viewmats", viewmats), ("Ks", Ks),
+        ("colors", colors if isinstance(colors, Tensor) else colors.cat()), ("viewmats", viewmats), ("Ks", Ks),
     ):
         if not torch.isfinite(tensor).all():
             raise NonFiniteInputError(non_finite_message(name, tensor), (name,))
@@ -177,7 +191,7 @@ def rasterization(
     quats: Tensor,
     scales: Tensor,
     opacities: Tensor,
-    colors: Tensor,
+    colors: Tensor | SplitSH,
     viewmats: Tensor,
     Ks: Tensor,
     width: int,
@@ -213,75 +227,166 @@ def rasterization(
     Returns:
         render_colors [C, H, W, ch], render_alphas [C, H, W, 1], meta (``means2d`` [C, N, 2] whose ``.grad`` backward
         fills, ``radii`` [C, N, 2] int32, ``depths`` [C, N], ``conics``, ``opacities`` [C, N], tile data, ``width``,
-        ``height``, ``tile_size``, ``n_cameras``).
+        ``height``, ``tile_size``, ``n_cameras``, ``backend``).
     """
     resolved = resolve_backend(backend, means.device)
-    fused = resolved == "cpu" and means.dtype in (torch.float32, torch.float64)
     if isinstance(colors, SplitSH):
-        # checked once here; only the fused cpu path reads the two tensors in place, the others get them joined
+        # checked once here; only the cpu backend's compiled projection reads the two tensors in place
         if sh_degree is None:
             raise ValueError("colors=SplitSH(...) holds SH coefficients: pass sh_degree")
         colors.check()
-        if not fused:
+        if not (resolved == "cpu" and _compiled_projection(means)):
             colors = colors.cat()
+    options = dict(
+        sh_degree=sh_degree, near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, radius_clip=radius_clip,
+        backgrounds=backgrounds, render_mode=render_mode, rasterize_mode=rasterize_mode, absgrad=absgrad,
+        tile_size=tile_size,
+    )
     if resolved == "gsplat":
-        import gsplat
+        return _rasterization_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height, **options)
+    if resolved == "cpu":
+        return _rasterization_cpu(means, quats, scales, opacities, colors, viewmats, Ks, width, height, **options)
+    return _rasterization_torch(means, quats, scales, opacities, colors, viewmats, Ks, width, height, **options)
 
-        render_colors, render_alphas, meta = gsplat.rasterization(
-            means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-            near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, radius_clip=radius_clip, sh_degree=sh_degree,
-            tile_size=tile_size, backgrounds=backgrounds, render_mode=render_mode, rasterize_mode=rasterize_mode,
-            absgrad=absgrad, packed=False,
-        )
-        if meta["means2d"].requires_grad:
-            meta["means2d"].retain_grad()
-        meta["backend"] = resolved
-        return render_colors, render_alphas, meta
 
+def _compiled_projection(means: Tensor) -> bool:
+    """The cpu backend projects with its compiled kernel for float32/float64 (other dtypes: the torch projection)."""
+    return means.dtype in (torch.float32, torch.float64)
+
+
+def _rasterization_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, sh_degree,
+                          near_plane, far_plane, eps2d, radius_clip, backgrounds, render_mode, rasterize_mode,
+                          absgrad, tile_size) -> tuple[Tensor, Tensor, dict]:
+    """``gsplat.rasterization`` itself (CUDA tensors), with ``meta["means2d"]`` keeping its gradient."""
+    import gsplat  # optional: resolve_backend checked that it imports
+
+    render_colors, render_alphas, meta = gsplat.rasterization(
+        means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+        near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, radius_clip=radius_clip, sh_degree=sh_degree,
+        tile_size=tile_size, backgrounds=backgrounds, render_mode=render_mode, rasterize_mode=rasterize_mode,
+        absgrad=absgrad, packed=False,
+    )
+    if meta["means2d"].requires_grad:
+        meta["means2d"].retain_grad()
+    meta["backend"] = "gsplat"
+    return render_colors, render_alphas, meta
+
+
+def _rasterization_cpu(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, sh_degree,
+                       near_plane, far_plane, eps2d, radius_clip, backgrounds, render_mode, rasterize_mode, absgrad,
+                       tile_size) -> tuple[Tensor, Tensor, dict]:
+    """The compiled CPU path: projection and SH in one kernel (float32/float64 inputs; the torch projection for
+    other dtypes), compiled tile binning, compiled compositing."""
+    fused = _compiled_projection(means)
     _check_inputs(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds, render_mode,
-        rasterize_mode, check_finite=not fused,
+        rasterize_mode, check_finite=not fused,  # the compiled projection finds NaN/inf while it reads its inputs
     )
     width, height = int(width), int(height)
-    n_cameras = viewmats.shape[0]
     if fused:
-        from .project_cpu import project_and_shade_cpu
-
-        _match_numba_threads()
-        if sh_degree is None and not torch.isfinite(colors).all():
-            raise NonFiniteInputError(non_finite_message("colors", colors), ("colors",))
-        splats = project_and_shade_cpu(
-            means, quats, scales, opacities, colors if sh_degree is not None else None, viewmats, Ks, width, height,
-            sh_degree=sh_degree, eps2d=eps2d, near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip,
-            antialiased=(rasterize_mode == "antialiased"),
-        )
-        radii, means2d, depths, conics, opacities_c = (splats.radii, splats.means2d, splats.depths, splats.conics,
-                                                        splats.opacities)
-        if sh_degree is None:
-            colors_c = colors if colors.dim() == 3 else colors[None].expand(n_cameras, -1, -1)
-        else:
-            colors_c = splats.colors
+        splats = _project_cpu(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree,
+                              near_plane, far_plane, eps2d, radius_clip, rasterize_mode)
     else:
-        proj = fully_fused_projection(
-            means, quats, scales, viewmats, Ks, width, height,
-            opacities=opacities, eps2d=eps2d, near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip,
-            calc_compensations=(rasterize_mode == "antialiased"),
-        )
-        radii, means2d, depths, conics = proj.radii, proj.means2d, proj.depths, proj.conics
-        opacities_c = opacities[None, :].expand(n_cameras, -1)
-        if proj.compensations is not None:
-            opacities_c = opacities_c * proj.compensations
-        visible = (radii > 0).all(dim=-1)  # [C, N]
-        if sh_degree is None:
-            colors_c = colors if colors.dim() == 3 else colors[None].expand(n_cameras, -1, -1)
-        else:
-            camtoworlds = torch.linalg.inv(viewmats)
-            dirs = means[None, :, :] - camtoworlds[:, None, :3, 3]  # [C, N, 3]
-            shs = colors if colors.dim() == 4 else colors[None].expand(n_cameras, -1, -1, -1)
-            colors_c = sh_to_rgb(sh_degree, dirs, shs, masks=visible)
+        splats = _project_torch(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree,
+                                near_plane, far_plane, eps2d, radius_clip, rasterize_mode)
+
+    from .rasterize_cpu import rasterize_to_pixels_cpu  # numba: loaded with the first cpu render
+
+    def bin_tiles(means2d, radii, depths, tile_width, tile_height):
+        return bin_tiles_cpu(means2d, radii, depths, tile_size, tile_width, tile_height)
+
+    return _composite(splats, width, height, backgrounds, render_mode, absgrad, tile_size, bin_tiles,
+                      rasterize_to_pixels_cpu, "cpu")
+
+
+def _rasterization_torch(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, sh_degree,
+                         near_plane, far_plane, eps2d, radius_clip, backgrounds, render_mode, rasterize_mode, absgrad,
+                         tile_size) -> tuple[Tensor, Tensor, dict]:
+    """The torch reference: every stage in torch ops, differentiated by autograd (the tests' oracle)."""
+    _check_inputs(
+        means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds, render_mode,
+        rasterize_mode,
+    )
+    width, height = int(width), int(height)
+    splats = _project_torch(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree,
+                            near_plane, far_plane, eps2d, radius_clip, rasterize_mode)
+
+    def bin_tiles(means2d, radii, depths, tile_width, tile_height):
+        n_cameras = means2d.shape[0]
+        tiles_per_gauss, isect_ids, flatten_ids = isect_tiles(means2d, radii, depths, tile_size, tile_width,
+                                                              tile_height)
+        return tiles_per_gauss, isect_ids, flatten_ids, isect_offset_encode(isect_ids, n_cameras, tile_width,
+                                                                            tile_height)
+
+    return _composite(splats, width, height, backgrounds, render_mode, absgrad, tile_size, bin_tiles,
+                      rasterize_to_pixels_torch, "torch")
+
+
+def _project_cpu(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, near_plane,
+                 far_plane, eps2d, radius_clip, rasterize_mode) -> ProjectedSplats:
+    """Compiled projection and SH colours; per-pair colours [C, N, D] filled in either way."""
+    from .project_cpu import project_and_shade_cpu
+
+    _match_numba_threads()
+    if sh_degree is None and not torch.isfinite(colors).all():
+        raise NonFiniteInputError(non_finite_message("colors", colors), ("colors",))
+    splats = project_and_shade_cpu(
+        means, quats, scales, opacities, colors if sh_degree is not None else None, viewmats, Ks, width, height,
+        sh_degree=sh_degree, eps2d=eps2d, near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip,
+        antialiased=(rasterize_mode == "antialiased"),
+    )
+    if sh_degree is None:
+        splats = splats._replace(colors=_per_camera(colors, viewmats.shape[0]))
+    return splats
+
+
+def _project_torch(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, near_plane,
+                   far_plane, eps2d, radius_clip, rasterize_mode) -> ProjectedSplats:
+    """The torch reference projection (:func:`fully_fused_projection`) and SH colours (:func:`sh_to_rgb`)."""
+    n_cameras = viewmats.shape[0]
+    proj = fully_fused_projection(
+        means, quats, scales, viewmats, Ks, width, height,
+        opacities=opacities, eps2d=eps2d, near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip,
+        calc_compensations=(rasterize_mode == "antialiased"),
+    )
+    opacities_c = opacities[None, :].expand(n_cameras, -1)
+    if proj.compensations is not None:
+        opacities_c = opacities_c * proj.compensations
+    if sh_degree is None:
+        colors_c = _per_camera(colors, n_cameras)
+    else:
+        visible = (proj.radii > 0).all(dim=-1)  # [C, N]
+        camtoworlds = torch.linalg.inv(viewmats)
+        dirs = means[None, :, :] - camtoworlds[:, None, :3, 3]  # [C, N, 3]
+        shs = colors if colors.dim() == 4 else colors[None].expand(n_cameras, -1, -1, -1)
+        colors_c = sh_to_rgb(sh_degree, dirs, shs, masks=visible)
+    return ProjectedSplats(proj.radii, proj.means2d, proj.depths, proj.conics, opacities_c, colors_c)
+
+
+def _per_camera(colors: Tensor, n_cameras: int) -> Tensor:
+    """Post-activation colours [N, D] or [C, N, D] as [C, N, D]."""
+    return colors if colors.dim() == 3 else colors[None].expand(n_cameras, -1, -1)
+
+
+def _composite(
+    splats: ProjectedSplats,
+    width: int,
+    height: int,
+    backgrounds: Optional[Tensor],
+    render_mode: str,
+    absgrad: bool,
+    tile_size: int,
+    bin_tiles: Callable,
+    rasterize: Callable,
+    backend: str,
+) -> tuple[Tensor, Tensor, dict]:
+    """Shared tail of the cpu and torch backends: depth channels of the render mode, tile binning (``bin_tiles``),
+    compositing (``rasterize``, a ``rasterize_to_pixels`` implementation), expected depth, and gsplat's meta."""
+    radii, means2d, depths, conics, opacities_c, colors_c = splats
+    assert colors_c is not None  # both projections fill the per-pair colours
+    n_cameras = means2d.shape[0]
     if means2d.requires_grad:
         means2d.retain_grad()  # density control reads meta["means2d"].grad
-
     if render_mode in ("RGB+D", "RGB+ED"):
         colors_c = torch.cat([colors_c, depths[..., None]], dim=-1)
         if backgrounds is not None:
@@ -296,15 +401,8 @@ def rasterization(
         )
 
     tile_width, tile_height = tile_grid(width, height, tile_size)
-    if fused:
-        tiles_per_gauss, isect_ids, flatten_ids, isect_offsets = bin_tiles_cpu(
-            means2d, radii, depths, tile_size, tile_width, tile_height)
-    else:
-        tiles_per_gauss, isect_ids, flatten_ids = isect_tiles(means2d, radii, depths, tile_size, tile_width,
-                                                              tile_height)
-        isect_offsets = isect_offset_encode(isect_ids, n_cameras, tile_width, tile_height)
-
-    rasterize = rasterize_to_pixels_torch if resolved == "torch" else _cpu_rasterizer()
+    tiles_per_gauss, isect_ids, flatten_ids, isect_offsets = bin_tiles(means2d, radii, depths, tile_width,
+                                                                       tile_height)
     render_colors, render_alphas = rasterize(
         means2d, conics, colors_c, opacities_c, width, height, tile_size, isect_offsets, flatten_ids,
         backgrounds=backgrounds, absgrad=absgrad and means2d.requires_grad,
@@ -333,6 +431,6 @@ def rasterization(
         "tile_size": tile_size,
         "n_batches": 1,
         "n_cameras": n_cameras,
-        "backend": resolved,
+        "backend": backend,
     }
     return render_colors, render_alphas, meta

@@ -99,7 +99,8 @@ def rasterize_to_pixels_torch(
         if not means2d.requires_grad:
             raise ValueError("absgrad=True needs means2d that requires grad")
         abs_store = torch.zeros((n_cameras * n_gauss, 2), dtype=dtype, device=device)
-        means2d.absgrad = abs_store.view(n_cameras, n_gauss, 2)  # filled by the hooks during backward
+        # gsplat's contract: the attribute on meta["means2d"] itself, filled by the hooks during backward
+        means2d.absgrad = abs_store.view(n_cameras, n_gauss, 2)  # type: ignore[attr-defined]
 
     means2d_flat = means2d.reshape(-1, 2)
     conics_flat = conics.reshape(-1, 3)

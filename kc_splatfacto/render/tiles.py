@@ -15,6 +15,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from kc_splatfacto import backend
+
 from .constants import DEPTH_BITS, ISECT_KEY_HIGH_BITS
 
 
@@ -90,7 +92,7 @@ def isect_tiles(
     visible = (radii[..., 0] > 0) & (radii[..., 1] > 0)
     span = (tile_max - tile_min).clamp(min=0)  # [C, N, 2]
     counts = torch.where(visible, span[..., 0] * span[..., 1], torch.zeros_like(span[..., 0]))  # [C, N]
-    if sort and means2d.device.type == "cpu" and n_gauss > 0:
+    if sort and backend.compiled(means2d) and n_gauss > 0:
         tiles_per_gauss, isect_ids, flatten_ids, _ = bin_tiles_cpu(means2d, radii, depths, tile_size, tile_width,
                                                                    tile_height)
         return TileIntersections(tiles_per_gauss, isect_ids, flatten_ids)

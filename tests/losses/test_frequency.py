@@ -7,6 +7,7 @@ import scipy.stats
 import torch
 from kornia.filters import gaussian_blur2d
 
+from kc_splatfacto import backend
 from kc_splatfacto.losses import (
     FrequencyLoss,
     WaveletBands,
@@ -328,12 +329,10 @@ def test_gradcheck_float64(term):
 
 
 @pytest.mark.parametrize("correlation", [False, True])
-def test_compiled_cpu_path_equals_torch_path(castle_p30, monkeypatch, correlation):
+def test_compiled_cpu_path_equals_torch_path(castle_p30, correlation):
     # On CPU the level, the moments and the L1 run as numba kernels (float64 sums); the torch path (what other devices
     # run) is the oracle: every term and the image gradient on a real photo in float32, training's precision and
     # size, with a render-like blurred prediction (small detail bands: the kurtosis's sensitive case)
-    from kc_splatfacto.losses import wavelets
-
     gt = load_image(castle_p30).float()
     pred = blur(gt, sigma=1.0) + 0.01 * torch.randn(gt.shape, generator=torch.Generator().manual_seed(3))
     loss = FrequencyLoss(wavelet_weight=1.0, kc_weight=1.0, cbc_weight=1e3, cbc_correlation=correlation)
@@ -345,8 +344,8 @@ def test_compiled_cpu_path_equals_torch_path(castle_p30, monkeypatch, correlatio
         return {k: v.detach() for k, v in terms.items()}, x.grad
 
     compiled, compiled_grad = terms_and_grad()
-    monkeypatch.setattr(wavelets, "uses_compiled_kernels", lambda x: False)
-    reference, reference_grad = terms_and_grad()
+    with backend.torch_reference():
+        reference, reference_grad = terms_and_grad()
     for key in reference:
         torch.testing.assert_close(compiled[key], reference[key], rtol=1e-5, atol=0)
     scale = reference_grad.abs().max()
@@ -355,8 +354,6 @@ def test_compiled_cpu_path_equals_torch_path(castle_p30, monkeypatch, correlatio
 
 def test_compiled_wavelet_l1_gradient_is_torch_l1_loss_including_ties():
     # sign(0) = 0, as torch's l1_loss backward: equal coefficients (a copied region) get no gradient
-    from kc_splatfacto.losses import wavelets
-
     torch.manual_seed(4)
     gt = torch.rand(1, 2, 40, 40)
     pred = gt.clone()
@@ -364,13 +361,9 @@ def test_compiled_wavelet_l1_gradient_is_torch_l1_loss_including_ties():
     results = []
     for compiled in (True, False):
         x = pred.clone().requires_grad_(True)
-        original = wavelets.uses_compiled_kernels
-        wavelets.uses_compiled_kernels = (lambda t: True) if compiled else (lambda t: False)
-        try:
+        with backend.torch_reference(not compiled):
             value = wavelet_l1(bands(x), target(gt), "fine")
             value.backward()
-        finally:
-            wavelets.uses_compiled_kernels = original
         results.append((value.detach(), x.grad))
     torch.testing.assert_close(results[0][0], results[1][0], rtol=1e-6, atol=0)
     torch.testing.assert_close(results[0][1], results[1][1], rtol=0, atol=1e-7)

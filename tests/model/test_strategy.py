@@ -224,8 +224,6 @@ def test_growth_cap_keeps_the_highest_gradient_candidates():
 def test_compiled_statistics_pass_equals_the_torch_ops(monkeypatch, track_radii):
     """The numba pass (one CPU camera) against the torch ops it replaces and a float64 reference: counts and radii
     equal, the accumulated norms within one float32 ulp of float64 (and, on x86, bit-identical to torch's)."""
-    from kc_splatfacto.model import strategy as strategy_module
-
     rng = np.random.default_rng(3)
     n = 20_000
     scale = 10.0 ** rng.uniform(-9, -2, (n, 1))
@@ -235,7 +233,7 @@ def test_compiled_statistics_pass_equals_the_torch_ops(monkeypatch, track_radii)
     results = {}
     for path in ("kernel", "torch"):
         if path == "torch":
-            monkeypatch.setattr(strategy_module, "_stats_kernel_applies", lambda *args: False)
+            monkeypatch.setenv("KC_SPLATFACTO_BACKEND", "torch")
         strategy = DefaultStrategy(absgrad=True, refine_start_iter=10, refine_scale2d_stop_iter=100 if track_radii else 0)
         state = strategy.initialize_state()
         state["grad2d"] = torch.from_numpy(start.copy())
@@ -257,3 +255,75 @@ def test_compiled_statistics_pass_equals_the_torch_ops(monkeypatch, track_radii)
     np.testing.assert_allclose(kernel["grad2d"].numpy(), expected, rtol=3e-7, atol=0)
     torch.testing.assert_close(kernel["grad2d"], ops_path["grad2d"], rtol=2.4e-7, atol=0)
     assert int((kernel["count"] > 2).sum()) == int(visible.sum()) > 0
+
+
+THRESHOLD = 2.0**-10  # a power of two: |(g, 0)| is exactly g in float32, so "exactly at the threshold" is exact
+ABOVE = float(np.nextafter(np.float32(THRESHOLD), np.float32(1.0)))  # one float32 ulp above
+
+
+@pytest.mark.parametrize("path", ["compiled", "torch"])
+def test_short_run_pins_the_schedule_and_the_counts_at_its_boundary_steps(path):
+    """Five Gaussians through 140 steps of gsplat's schedule (refine every 10 from step 0, opacity reset every 100,
+    refinement paused for 30 steps after each reset), with gradients only at step 30. Hand-computed expectations:
+
+    - refinements at 30..90 and 130, 140 (10, 20 and 100..120 fall in the pause: step % 100 < 30);
+    - step 30: A (gradient exactly at the threshold) does not grow, B (one ulp above, small) is duplicated,
+      C (above, large) is split in two, D (opacity 0.05 < 0.1) is pruned; C's children (scale 0.5 / 1.6 > 0.1 x scene
+      scale) survive because size pruning starts only after the first reset;
+    - step 100: the opacity reset (to 2 x 0.1); step 130, the first refinement after it, prunes C's two children.
+    """
+    from kc_splatfacto import backend
+
+    n = 5
+    params = make_params(n, seed=1)
+    with torch.no_grad():
+        params["means"][:, 0] = torch.arange(n, dtype=torch.float32)
+        params["means"][4, 0] = 100.0  # E: visible at every step (its zero gradient only counts visits)
+        params["scales"][:] = math.log(0.001)
+        params["scales"][2] = math.log(0.5)  # C: large
+        params["opacities"][:] = math.log(0.9 / 0.1)
+        params["opacities"][3] = math.log(0.05 / 0.95)  # D: transparent
+    strategy = DefaultStrategy(prune_opa=0.1, grow_grad2d=THRESHOLD, grow_scale3d=0.01, prune_scale3d=0.1,
+                               refine_start_iter=0, refine_every=10, reset_every=100, pause_refine_after_reset=30,
+                               refine_stop_iter=1000, absgrad=True)
+    state = strategy.initialize_state(scene_scale=1.0)
+    refined, resets, counts = [], [], {}
+    torch.manual_seed(0)  # the split samples its children
+    with backend.torch_reference(path == "torch"):
+        for step in range(1, 141):
+            count = len(params["means"])
+            visible = params["means"][:, 0] > 50
+            grads = [[0.0, 0.0] for _ in range(count)]
+            if step == 30:
+                visible[:3] = True
+                grads[0], grads[1], grads[2] = [THRESHOLD, 0.0], [ABOVE, 0.0], [ABOVE, 0.0]
+            radii = [[2, 2] if v else [0, 0] for v in visible.tolist()]
+            # width 2, height 2, one camera: the NDC scaling of the gradient is 1
+            report = strategy.step_post_backward(params, {}, state, step, synthetic_info(grads, radii, 2, 2))
+            if float(state["count"].max()) == 0:  # E's visit count is zeroed only by a refinement
+                refined.append(step)
+            if report["opacity_reset"]:
+                resets.append(step)
+            if any(report[k] for k in ("duplicated", "split", "pruned")):
+                counts[step] = (report["duplicated"], report["split"], report["pruned"], len(params["means"]))
+    assert refined == [30, 40, 50, 60, 70, 80, 90, 130, 140]
+    assert resets == [100]
+    # (duplicated, split, pruned, Gaussians after): 5 + 1 (B's copy) + 1 (C -> 2 children) - 1 (D) = 6; then 6 - 2
+    assert counts == {30: (1, 1, 1, 6), 130: (0, 0, 2, 4)}
+    np.testing.assert_allclose(torch.sigmoid(params["opacities"]).detach().flatten().numpy(), 0.2, rtol=1e-6)
+
+
+@pytest.mark.parametrize("revised", [False, True])
+def test_split_children_opacity_with_and_without_the_revised_formula(revised):
+    # Rota Bulo et al.'s revised opacity: each child gets 1 - sqrt(1 - o) (o = 0.64 -> 0.4); otherwise a copy of o
+    params = make_params(1)
+    with torch.no_grad():
+        params["scales"][:] = math.log(0.5)
+        params["opacities"][:] = math.log(0.64 / 0.36)
+    strategy = DefaultStrategy(grow_grad2d=THRESHOLD, refine_start_iter=0, refine_every=1, revised_opacity=revised,
+                               absgrad=True)
+    state = strategy.initialize_state(scene_scale=1.0)
+    report = strategy.step_post_backward(params, {}, state, 1, synthetic_info([[ABOVE, 0.0]], [[2, 2]], 2, 2))
+    assert report["split"] == 1 and len(params["means"]) == 2
+    expected = 1 - math.sqrt(1 - 0.64) if revised else 0.64
+    np.testing.assert_allclose(torch.sigmoid(params["opacities"]).detach().flatten().numpy(), [expected] * 2, rtol=1e-5)
