@@ -18,7 +18,7 @@ The paper gives no numbers for "Heavy" and "Scaled"; our reading: "(Heavy)Wavele
 (covariances divided by the band standard deviations, so it is invariant to each band's scale). "(Unscaled)Wavelets"
 drops the 2^j level weights (uniform). "L1+Wavelet" drops the D-SSIM term (ssim_lambda 0, main loss = L1).
 ``kc-splatfacto-fine`` weights finer levels heavier (2^(J-j+1)), as the paper's text (not its equation) describes.
-``kc-splatfacto-corr`` is the setting a sweep on castle-P30 chose (the paper's weights, CBC on correlations; its
+``kc-splatfacto-corr`` is the setting a one-seed sweep on castle-P30 chose (the paper's weights, CBC on correlations; its
 evidence is in the docstring below its definition).
 """
 
@@ -84,6 +84,6 @@ kc_splatfacto_corr = MethodSpecification(
                 "(docs/results/castle-P30-sweep)",
 )
 """``kc-splatfacto`` with one change, the cross-band term on band correlations (covariances divided by the bands'
-standard deviations, invariant to each band's scale): the setting a sweep on castle-P30 chose. The evidence, and
+standard deviations, invariant to each band's scale): the setting a one-seed sweep on castle-P30 chose (one pair per setting). The evidence, and
 where it does not hold, is in docs/losses.md ("The tuned setting"); ``kc-splatfacto`` (the paper's) stays the
 reference."""
