@@ -63,8 +63,11 @@ def _train(scene: Path, out: Path, *, masks: bool, background: str = "random") -
     config.logging.steps_per_log = 4
     run_dir = Trainer(config).train()
     checkpoint = load_checkpoint(find_checkpoint(run_dir / "nerfstudio_models"))
-    records = [{k: v for k, v in r.items() if k not in ("elapsed_s", "train_s", "render_fps", "path")}
+    records = [{k: v for k, v in r.items() if k not in ("elapsed_s", "train_s", "train_cpu_s", "render_fps", "path")}
                for r in read_metrics(run_dir / "metrics.jsonl")]
+    for record in records:  # per-view metrics name their image file, which lies in this run's own scene copy
+        if "per_image" in record:
+            record["per_image"] = [{k: v for k, v in view.items() if k != "image"} for view in record["per_image"]]
     return checkpoint["model"], records
 
 
