@@ -20,6 +20,7 @@ from kc_splatfacto.data.spars3r import Spars3rDataParserConfig
 from kc_splatfacto.engine.checkpoints import find_checkpoint, load_checkpoint
 from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.trainer import Trainer
+from kc_splatfacto.study.runs import numbers_only
 from tests.training_utils import TINY_HEIGHT, TINY_WIDTH, tiny_demo_config
 
 STEPS = 16
@@ -63,8 +64,7 @@ def _train(scene: Path, out: Path, *, masks: bool, background: str = "random") -
     config.logging.steps_per_log = 4
     run_dir = Trainer(config).train()
     checkpoint = load_checkpoint(find_checkpoint(run_dir / "nerfstudio_models"))
-    records = [{k: v for k, v in r.items() if k not in ("elapsed_s", "train_s", "train_cpu_s", "render_fps", "path")}
-               for r in read_metrics(run_dir / "metrics.jsonl")]
+    records = numbers_only(read_metrics(run_dir / "metrics.jsonl"))  # without the clocks (TIMING_KEYS)
     for record in records:  # per-view metrics name their image file, which lies in this run's own scene copy
         if "per_image" in record:
             record["per_image"] = [{k: v for k, v in view.items() if k != "image"} for view in record["per_image"]]
