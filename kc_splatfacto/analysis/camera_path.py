@@ -227,9 +227,11 @@ def read_camera_path(path: Path) -> CameraPath:
     return CameraPath(_cameras(c2w, Ks, int(width), int(height)), fps)
 
 
-def camera_path_dict(cameras: Cameras, fps: float) -> dict:
-    """nerfstudio's camera-path JSON of ``cameras`` (one image size); the focal kept is ``fy`` (as the vertical fov)
-    and the principal point becomes the image centre, which is all the format holds."""
+def camera_entries(cameras: Cameras, matrix_key: str = "camera_to_world") -> list[dict]:
+    """nerfstudio's per-camera entries of ``cameras`` (one image size): ``matrix_key`` (``camera_to_world`` in a path,
+    ``matrix`` in its viewer's keyframes) the OpenGL-axes camera-to-world as 16 row-major numbers, ``fov`` the
+    vertical field of view from ``fy`` in degrees, ``aspect`` W / H. The principal point is not kept: the format puts
+    it at the image centre."""
     width, height = int(cameras.widths[0]), int(cameras.heights[0])
     c2w = np.linalg.inv(cameras.viewmats.double().numpy())
     entries = []
@@ -238,6 +240,12 @@ def camera_path_dict(cameras: Cameras, fps: float) -> dict:
         matrix[:3, :3] = c2w[i, :3, :3] @ GL_FROM_CV
         matrix[:3, 3] = c2w[i, :3, 3]
         fov = math.degrees(2.0 * math.atan((height / 2.0) / float(cameras.Ks[i, 1, 1])))
-        entries.append({"camera_to_world": matrix.reshape(-1).tolist(), "fov": fov, "aspect": width / height})
-    return {"camera_type": PERSPECTIVE, "render_width": width, "render_height": height, "fps": fps,
-            "seconds": len(cameras) / fps, "camera_path": entries}
+        entries.append({matrix_key: matrix.reshape(-1).tolist(), "fov": fov, "aspect": width / height})
+    return entries
+
+
+def camera_path_dict(cameras: Cameras, fps: float) -> dict:
+    """nerfstudio's camera-path JSON of ``cameras`` (one image size), played at ``fps``."""
+    return {"camera_type": PERSPECTIVE, "render_width": int(cameras.widths[0]),
+            "render_height": int(cameras.heights[0]), "fps": float(fps), "seconds": len(cameras) / fps,
+            "camera_path": camera_entries(cameras)}

@@ -21,7 +21,14 @@ def install_stop_handlers(handler: Callable) -> dict | None:
     return {sig: signal.signal(sig, handler) for sig in STOP_SIGNALS}
 
 
+def current_stop_handlers() -> dict | None:
+    """The handlers SIGINT and SIGTERM have now, for :func:`restore_handlers` (None off the main thread)."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}
+
+
 def restore_handlers(previous: dict | None) -> None:
-    """Put back what :func:`install_stop_handlers` replaced."""
+    """Put back what :func:`install_stop_handlers` replaced (or what :func:`current_stop_handlers` saw)."""
     for sig, old in (previous or {}).items():
         signal.signal(sig, old)

@@ -5,7 +5,9 @@ Both call ``on_result(result)`` in this process as each run ends (in completion 
 report) and print progress: finished / running / queued runs and an ETA. A run's failure is a result with status
 ``failed``, never an exception: the other runs go on. Ctrl-C stops the study: the serial runner lets the running
 trainer save a checkpoint and stop; the Ray runner cancels its tasks (a running trainer is interrupted where it is,
-its last periodic checkpoint is what ``--resume`` continues from). Either way the runs already finished are intact and
+its last periodic checkpoint is what ``--resume`` continues from). SIGTERM (``kill``, ``timeout``, a job scheduler)
+stops a study as Ctrl-C does: ``ray.init`` installs a SIGTERM handler of its own that exits the driver at once, so the
+Ray runner puts its own back once the cluster is up. Either way the runs already finished are intact and
 :class:`StudyInterrupted` is raised after the results so far were handed over.
 
 Threads: a Ray task asks for ``threads`` CPUs (``num_cpus``) and runs with ``OMP_NUM_THREADS`` and
@@ -19,6 +21,7 @@ import sys
 import time
 from typing import Any, Callable, Sequence
 
+from kc_splatfacto.engine.signals import current_stop_handlers, install_stop_handlers, restore_handlers
 from kc_splatfacto.errors import UserError
 from kc_splatfacto.study.runs import RunSpec, execute_run, write_returned_files
 
@@ -27,7 +30,11 @@ ResultCallback = Callable[[dict[str, Any]], None]
 
 
 class StudyInterrupted(KeyboardInterrupt):
-    """Ctrl-C stopped the study; the finished runs' results were handed over before this was raised."""
+    """Ctrl-C or SIGTERM stopped the study; the finished runs' results were handed over before this was raised."""
+
+
+def _interrupt(signum, frame) -> None:  # noqa: ARG001
+    raise KeyboardInterrupt
 
 
 class RayUnavailableError(UserError, ImportError):
@@ -128,6 +135,20 @@ def _ray_execute(spec: RunSpec, resume: bool, send_files: bool, progress_actor) 
     return execute_run(spec, resume=resume, send_files=send_files)
 
 
+def _authenticate_like_ray_start() -> None:
+    """Use Ray's token authentication when a token is there (``~/.ray/auth_token``, ``RAY_AUTH_TOKEN``...) and
+    ``RAY_AUTH_MODE`` does not decide: ``ray start`` turns it on in that case, but ``ray.init`` with an explicit
+    address does not, so without this a driver is refused by a cluster that ``ray start`` began on the same machine
+    (any earlier local Ray cluster leaves the token file behind)."""
+    if os.environ.get("RAY_AUTH_MODE") is not None:
+        return
+    try:
+        from ray._private.authentication.authentication_token_setup import maybe_enable_token_auth_if_token_available
+    except ImportError:  # a Ray without token authentication
+        return
+    maybe_enable_token_auth_if_token_available(warn_if_disabled=False)
+
+
 class RayRunner:
     """Every run as a Ray task.
 
@@ -159,6 +180,7 @@ class RayRunner:
         ray = self.ray
         runtime_env = {"env_vars": self._env()}
         if self.address:
+            _authenticate_like_ray_start()
             ray.init(address=self.address, runtime_env=runtime_env, log_to_driver=False)
             cpus = int(ray.cluster_resources().get("CPU", 0))
             print(f"[kc-bench] Ray cluster at {self.address}: {cpus} CPUs, {self.threads} per run", file=self.stream,
@@ -177,11 +199,14 @@ class RayRunner:
 
     def run(self, specs: Sequence[RunSpec], on_result: ResultCallback, *, resume: bool) -> None:
         ray = self.ray
-        slots = self._init()
+        previous = current_stop_handlers()
         try:
+            slots = self._init()
+            install_stop_handlers(_interrupt)  # after ray.init, which routes SIGTERM to its own exit
             self._run(ray, specs, on_result, resume=resume, slots=slots)
         finally:
             ray.shutdown()
+            restore_handlers(previous)  # the caller's handlers, not the ones ray.init left
 
     def _run(self, ray, specs: Sequence[RunSpec], on_result: ResultCallback, *, resume: bool, slots: int) -> None:
         @ray.remote

@@ -15,13 +15,9 @@ from typing import Any
 import numpy as np
 import torch
 
+from kc_splatfacto.analysis.camera_path import camera_entries, camera_path_dict, interpolate_camera_path
 from kc_splatfacto.data.outputs import Cameras
 from kc_splatfacto.render.projection import quat_to_rotmat, rotmat_to_quat
-
-#: OpenCV camera axes -> OpenGL camera axes (nerfstudio's camera convention): flip y and z
-OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
-#: the format tag of a camera-path JSON written here (nerfstudio's render panel writes the same fields)
-CAMERA_PATH_TYPE = "perspective"
 
 
 def render_size(width: int, height: int, max_pixels: int) -> tuple[int, int]:
@@ -85,30 +81,12 @@ def splat_arrays(model) -> dict[str, np.ndarray]:
 def camera_path_json(keyframes: Cameras, fps: float, seconds: float, loop: bool = False) -> dict[str, Any]:
     """nerfstudio's camera-path JSON (its viewer's export, ``ns-render camera-path``'s input) through ``keyframes``:
     ``camera_path`` holds ``round(fps * seconds)`` cameras interpolated through the keys (slerped orientations,
-    lerped centres and intrinsics), each ``camera_to_world`` (OpenGL axes, row-major 16 numbers), ``fov`` (vertical,
-    degrees) and ``aspect``; ``keyframes`` the keys themselves (``matrix`` in the same form); ``render_width`` /
-    ``render_height`` the keys' image size."""
-    from kc_splatfacto.analysis.camera_path import interpolate_camera_path
-
+    lerped centres and intrinsics) as :func:`~kc_splatfacto.analysis.camera_path.camera_path_dict` writes them, and
+    nerfstudio's viewer fields beside: ``keyframes`` (the keys, ``matrix`` in the same form), ``seconds`` as asked,
+    ``is_cycle``."""
     if len(keyframes) == 0:
         raise ValueError("camera_path_json: no keyframes")
     num_frames = max(int(round(fps * seconds)), 1)
-    path = interpolate_camera_path(keyframes, num_frames, loop=loop)
-
-    def entries(cameras: Cameras, matrix_key: str) -> list[dict[str, Any]]:
-        c2w = torch.linalg.inv(cameras.viewmats.to(torch.float64)).numpy() @ OPENCV_TO_OPENGL
-        _, _, fov = pose_of(cameras)
-        aspect = (cameras.widths.double() / cameras.heights.double()).numpy()
-        return [{matrix_key: c2w[i].reshape(-1).tolist(), "fov": math.degrees(float(fov[i])), "aspect": float(aspect[i])}
-                for i in range(len(cameras))]
-
-    return {
-        "camera_type": CAMERA_PATH_TYPE,
-        "render_width": int(keyframes.widths[0]),
-        "render_height": int(keyframes.heights[0]),
-        "fps": float(fps),
-        "seconds": float(seconds),
-        "is_cycle": bool(loop),
-        "keyframes": entries(keyframes, "matrix"),
-        "camera_path": entries(path, "camera_to_world"),
-    }
+    data = camera_path_dict(interpolate_camera_path(keyframes, num_frames, loop=loop), fps)
+    data.update(seconds=float(seconds), is_cycle=bool(loop), keyframes=camera_entries(keyframes, "matrix"))
+    return data
