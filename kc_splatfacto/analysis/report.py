@@ -11,7 +11,9 @@ Input: the evaluation records every run writes (``{"kind": "eval", "step", "elap
   stays far below 1 % does next to nothing at its weight).
 
 Time axis: ``train_s`` (seconds spent in training steps, evaluation excluded) by default, so methods are compared
-on what their training costs, not on how often they were evaluated.
+on what their training costs, not on how often they were evaluated. A run's first step also holds one-time start-up
+work that is no cost of its method (numba compiling the CPU kernels into its on-disk cache on the first use of a
+source tree: 100-120 s, in whichever runs a study happens to start first); :func:`clock_offsets` takes it out.
 """
 
 from __future__ import annotations
@@ -54,8 +56,37 @@ def _number(value) -> float | None:
     return value if math.isfinite(value) else None
 
 
+def clock_offsets(records: Sequence[dict]) -> dict[str, float]:
+    """Seconds to take off each clock of a run (``train_s``, ``train_cpu_s``; ``elapsed_s`` loses ``train_s``'s)
+    so that its first step costs what the steps after it cost: the clock at the first logged step ``s0`` minus
+    ``s0`` times the per-step rate between the first two logged steps. 0 for a run with fewer than two logged steps
+    or no such clock.
+
+    The first step is where one-time start-up lands (kernel compilation), which would otherwise be charged to the
+    run's method."""
+    logged = sorted((r for r in records if r.get("kind") in ("train", "eval") and "step" in r), key=lambda r: r["step"])
+    offsets = {"train_s": 0.0, "train_cpu_s": 0.0}
+    for key in offsets:
+        timed = [r for r in logged if _number(r.get(key)) is not None]
+        first = timed[0] if timed else None
+        later = next((r for r in timed if r["step"] > first["step"]), None) if first else None
+        if first is None or later is None:
+            continue
+        rate = (float(later[key]) - float(first[key])) / (later["step"] - first["step"])
+        offsets[key] = max(0.0, float(first[key]) - first["step"] * max(rate, 0.0))
+    offsets["elapsed_s"] = offsets["train_s"]
+    return offsets
+
+
+def _minus(value: float | None, offset: float) -> float | None:
+    return None if value is None else value - offset
+
+
 def eval_rows(records: Iterable[dict], scene: str, method: str, seed: int, run_dir: str | Path = "") -> list[dict]:
-    """The evaluation records of one run as flat rows (:data:`EVAL_COLUMNS`), sorted by step, one per step."""
+    """The evaluation records of one run as flat rows (:data:`EVAL_COLUMNS`), sorted by step, one per step; clocks
+    without the run's start-up (:func:`clock_offsets`)."""
+    records = list(records)
+    offset = clock_offsets(records)
     rows = []
     for record in records:
         if record.get("kind") != "eval":
@@ -69,9 +100,9 @@ def eval_rows(records: Iterable[dict], scene: str, method: str, seed: int, run_d
                 "method": method,
                 "seed": int(seed),
                 "step": int(record["step"]),
-                "elapsed_s": float(record["elapsed_s"]),
-                "train_s": float(record["train_s"]),
-                "train_cpu_s": _number(record.get("train_cpu_s")),
+                "elapsed_s": float(record["elapsed_s"]) - offset["elapsed_s"],
+                "train_s": float(record["train_s"]) - offset["train_s"],
+                "train_cpu_s": _minus(_number(record.get("train_cpu_s")), offset["train_cpu_s"]),
                 "psnr": _number(record.get("psnr")),
                 "ssim": _number(record.get("ssim")),
                 "lpips": _number(record.get("lpips")),

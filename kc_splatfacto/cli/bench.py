@@ -49,7 +49,7 @@ from kc_splatfacto.engine.optimizers import SPLATFACTO_SCHEDULE_STEPS  # ``--ste
 from kc_splatfacto.errors import UserError
 from kc_splatfacto.registry import discover_methods
 from kc_splatfacto.study.runners import RayRunner, SerialRunner, StudyInterrupted
-from kc_splatfacto.study.runs import RunSpec, check_same_settings
+from kc_splatfacto.study.runs import RunSpec, check_same_settings, is_finished
 
 
 class BenchArgumentError(UserError, ValueError):
@@ -272,15 +272,22 @@ def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
     out_dir = Path(args.output_dir)
     runs_dir = Path(args.runs_dir) if args.runs_dir else out_dir / "runs"
     specs = plan_runs(args, methods_available, runs_dir)
-    if args.resume:  # every folder of another setting refused before any run starts
+    if args.resume or args.report_only:  # every folder of another setting refused before any run starts
         for spec in specs:
             check_same_settings(spec.run_dir, spec.config)
-    runner = choose_runner(args)
+    if args.report_only:
+        to_run = [spec for spec in specs if is_finished(spec.run_dir, spec.max_steps)]
+        if not to_run:
+            raise BenchArgumentError(f"--report-only: none of the {len(specs)} runs is finished in {runs_dir}")
+        runner: SerialRunner | RayRunner = SerialRunner()  # finished runs are only read
+    else:
+        to_run, runner = specs, choose_runner(args)
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "command.txt").write_text("kc-bench " + " ".join(shlex.quote(a) for a in argv) + "\n")
+    if not args.report_only:
+        (out_dir / "command.txt").write_text("kc-bench " + " ".join(shlex.quote(a) for a in argv) + "\n")
     study = Study(specs, out_dir, args)
     try:
-        runner.run(specs, study.add, resume=args.resume)
+        runner.run(to_run, study.add, resume=args.resume or args.report_only)
     finally:  # also after Ctrl-C: the plots of what finished
         runs = [r for r in study.finished_runs() if r["status"] != "failed"]
         if runs:
@@ -409,6 +416,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--resume", action="store_true",
                         help="continue a stopped study: reuse finished runs, resume interrupted ones from their last "
                              "checkpoint (same command line plus --resume)")
+    parser.add_argument("--report-only", action="store_true",
+                        help="write the report of the runs already finished in the runs folder and train nothing "
+                             "(command.txt is kept): a study's report while it runs elsewhere, or after a report "
+                             "change")
     parser.add_argument("--steps-per-save", type=int, default=1000,
                         help="checkpoint every this many steps (what --resume continues from; 0: only at the end)")
     cluster = parser.add_argument_group("running runs at once (Ray: pip install 'kc-splatfacto[cluster]')")

@@ -28,6 +28,12 @@ def _fake_runs(tmp_path):
                 records.append({"kind": "eval", "step": step, "elapsed_s": t + 1.0, "train_s": t, "psnr": psnr,
                                 "ssim": ssim, "lpips": None, "lpips_unavailable": "no weights", "num_images": 4})
                 truth[(method, seed, step)] = (psnr, ssim, t)
+            # rows count time from step 1 at the rate of steps 1 -> 10 (the first step's start-up left out)
+            t1, t10 = truth[(method, seed, 1)][2], truth[(method, seed, 10)][2]
+            start_up = max(0.0, t1 - (t10 - t1) / 9)
+            for step in (1, 10, 100, 300):
+                psnr, ssim, t = truth[(method, seed, step)]
+                truth[(method, seed, step)] = (psnr, ssim, t - start_up)
             path = tmp_path / method / str(seed) / "metrics.jsonl"
             path.parent.mkdir(parents=True)
             path.write_text("\n".join(json.dumps(r) for r in records) + "\n")
@@ -226,3 +232,30 @@ def test_pooled_deltas_need_two_pairs_per_scene_for_the_per_scene_interval():
     assert pooled["psnr_db_per_scene"] == pytest.approx(0.35)
     assert pooled["psnr_db_per_scene_interval"] is None  # one pair has no within-scene variance
     assert pooled["psnr_db_all_pairs"] == pytest.approx(0.3)
+
+
+def _timed_log(startup_s: float, startup_cpu_s: float) -> list[dict]:
+    """A run logging a train record every 10 steps and evaluations at steps 1 and 50, at 0.02 s (0.03 CPU s) per
+    step, its first step also holding ``startup_s`` of one-time work."""
+    records = []
+    for step in (1, *range(10, 101, 10)):
+        clocks = {"train_s": 0.02 * step + startup_s, "train_cpu_s": 0.03 * step + startup_cpu_s,
+                  "elapsed_s": 0.025 * step + startup_s}
+        records.append({"kind": "train", "step": step, **clocks})
+        if step in (1, 50):
+            records.append({"kind": "eval", "step": step, "psnr": 20.0, **clocks})
+    return records
+
+
+def test_clocks_leave_out_the_first_steps_start_up():
+    """A 110 s start-up in step 1 (kernel compilation) is taken off every clock: the rows equal those of the same
+    run without it, and step s costs s times the per-step rate."""
+    plain = report.eval_rows(_timed_log(0.0, 0.0), "s", "m", 0)
+    compiled = report.eval_rows(_timed_log(110.0, 104.0), "s", "m", 0)
+    assert [r["step"] for r in compiled] == [1, 50]
+    for a, b in zip(plain, compiled):
+        for key in ("train_s", "train_cpu_s", "elapsed_s"):
+            assert b[key] == pytest.approx(a[key], abs=1e-9)
+    assert compiled[1]["train_s"] == pytest.approx(0.02 * 50) and compiled[1]["train_cpu_s"] == pytest.approx(0.03 * 50)
+    assert report.clock_offsets(_timed_log(110.0, 104.0))["train_cpu_s"] == pytest.approx(104.0)
+    assert report.clock_offsets([{"kind": "eval", "step": 1, "train_s": 5.0}])["train_s"] == 0.0  # nothing to compare

@@ -48,6 +48,14 @@ def test_resume_continues_an_interrupted_study(tmp_path, monkeypatch):
     assert [r["step"] for r in logged if r["kind"] == "eval"] == [1, 2, 5]  # the evaluation at 5 is past the checkpoint
     first_log = (out / "runs" / "demo" / "splatfacto" / "seed0" / "metrics.jsonl").read_text()
 
+    # --report-only: the report of the finished run, nothing trained, the study's command kept
+    command = (out / "command.txt").read_text()
+    killed_log = (killed_dir / "metrics.jsonl").read_text()
+    assert _bench(out, ["--report-only"]) == 0
+    assert [(r["method"], r["status"]) for r in json.loads((out / "runs.json").read_text())] == [("splatfacto", "reused")]
+    assert _metric_rows(out) == [row for row in _metric_rows(reference) if row[0] == "splatfacto"]
+    assert (killed_dir / "metrics.jsonl").read_text() == killed_log and (out / "command.txt").read_text() == command
+
     assert _bench(out, ["--resume"]) == 0
     runs = json.loads((out / "runs.json").read_text())
     assert [(r["method"], r["status"]) for r in runs] == [("splatfacto", "reused"), ("kc-splatfacto", "resumed")]
