@@ -20,7 +20,8 @@ Runs execute one after another in this process (``--workers 1``, the default), o
 ``--ray-address`` (or ``RAY_ADDRESS``) submits them to a running cluster; ``--threads`` sets each run's torch and
 numba threads. The run folders, the report and the numbers are the same either way (``docs/study.md``). A failed run
 is reported in ``runs.json`` and on stderr while the others go on (exit status 1); Ctrl-C or SIGTERM keeps every
-finished run (exit status 130) and ``--resume`` continues.
+finished run (exit status 130) and ``--resume`` continues. ``--report-only`` writes the report of the finished runs
+and trains nothing.
 
 Example (the committed castle-P30 result)::
 
