@@ -16,13 +16,18 @@ from __future__ import annotations
 
 import importlib
 import os
+import sys
 from dataclasses import dataclass
 from importlib.metadata import entry_points
+from pathlib import Path
 from typing import Any
 
 METHOD_GROUP = "kc_splatfacto.method_configs"
 DATAPARSER_GROUP = "kc_splatfacto.dataparser_configs"
 METHOD_ENV = "KC_SPLATFACTO_METHOD_CONFIGS"
+#: the top-level package this project's own methods install as: the design's ``method_configs/`` folder, beside
+#: ``kc_splatfacto/`` in a checkout and in site-packages alike
+OWN_METHODS_PACKAGE = "method_configs"
 DATAPARSER_ENV = "KC_SPLATFACTO_DATAPARSER_CONFIGS"
 
 
@@ -60,6 +65,23 @@ def _load_object(name: str, target: str, origin: str) -> Any:
         raise RegistryError(f"{origin}: module '{module_name}' has no attribute '{attribute}' (for '{name}')") from exc
 
 
+def check_own_methods_package() -> None:
+    """``method_configs`` is a generic top-level name that another distribution, or a folder on ``sys.path``, could
+    also have: the one imported must be the folder beside this package, never a namesake whose methods would be
+    trained under this project's method names."""
+    module = sys.modules.get(OWN_METHODS_PACKAGE)
+    if module is None or getattr(module, "__file__", None) is None:
+        return
+    ours = Path(__file__).resolve().parents[1] / OWN_METHODS_PACKAGE
+    found = Path(module.__file__).resolve().parent
+    if found != ours:
+        raise RegistryError(
+            f"the '{OWN_METHODS_PACKAGE}' package imported from {found} is not kc-splatfacto's ({ours}): another "
+            f"installed package or a folder on sys.path has the same top-level name; uninstall or rename it, or put "
+            f"kc-splatfacto first on sys.path"
+        )
+
+
 def _discover(group: str, env_var: str, expected: type) -> dict[str, Any]:
     found: dict[str, Any] = {}
     for ep in entry_points(group=group):
@@ -67,6 +89,8 @@ def _discover(group: str, env_var: str, expected: type) -> dict[str, Any]:
             spec = ep.load()
         except Exception as exc:  # a broken third-party plugin must name itself
             raise RegistryError(f"entry point '{ep.name}' in group '{group}' ({ep.value}) failed to load: {exc}") from exc
+        if ep.value.split(".")[0].split(":")[0] == OWN_METHODS_PACKAGE:
+            check_own_methods_package()
         if not isinstance(spec, expected):
             raise RegistryError(
                 f"entry point '{ep.name}' in group '{group}' ({ep.value}) is a {type(spec).__name__}, "
