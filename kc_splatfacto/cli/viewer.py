@@ -21,7 +21,7 @@ DEFAULT_MAX_RENDER_PIXELS = 800 * 600
 def open_viewer(load_config: Path, step: int | None = None, host: str = "127.0.0.1", port: int = 7007,
                 max_render_pixels: int = DEFAULT_MAX_RENDER_PIXELS):
     """The :class:`~kc_splatfacto.viewer.viewer.Viewer` of a finished run (serving; call ``serve_forever``)."""
-    from kc_splatfacto.engine.config import ViewerConfig
+    from kc_splatfacto.engine.base_config import ViewerConfig
     from kc_splatfacto.engine.run_io import load_run
     from kc_splatfacto.viewer.viewer import Viewer, import_viser
 
