@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import unicodedata
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -22,8 +23,8 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from kc_splatfacto.data.outputs import Cameras, DataparserOutputs
 from kc_splatfacto.atomic import atomic_write_text
+from kc_splatfacto.data.outputs import Cameras, DataparserOutputs
 from kc_splatfacto.errors import UserError
 
 SPLITS = ("train", "val", "test")
@@ -368,8 +369,6 @@ def read_text_file(path: Path) -> str:
 
 
 def _is_invisible(char: str) -> bool:
-    import unicodedata
-
     return unicodedata.category(char) in ("Cf", "Cc")  # format (zero-width, BOM, bidi) and control characters
 
 

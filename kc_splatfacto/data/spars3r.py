@@ -23,6 +23,7 @@ from kc_splatfacto.data.base import DataParser, DataParserConfig, DataParserErro
 from kc_splatfacto.data.colmap import colmap_split_outputs, find_model_dir, has_model, read_colmap_model
 from kc_splatfacto.data.outputs import DataparserOutputs
 from kc_splatfacto.data.paths import check_names_inside
+from kc_splatfacto.registry import DataParserSpecification
 
 IMAGE_DIR_NAMES = ("images", "images_train+test")
 TRAIN_LIST_NAMES = ("train_list.txt", "train.txt")
@@ -141,8 +142,6 @@ class Spars3rDataParser(DataParser):
 
 
 def _spec():
-    from kc_splatfacto.registry import DataParserSpecification
-
     return DataParserSpecification(
         config=Spars3rDataParserConfig(),
         description="SPARS3R sparse-view scene: images/, train_list.txt, test_list.txt, COLMAP sparse/0 or sparse_*/0",

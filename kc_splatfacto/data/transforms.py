@@ -56,6 +56,7 @@ from kc_splatfacto.data.images import image_size
 from kc_splatfacto.data.outputs import DataparserOutputs
 from kc_splatfacto.data.paths import inside_folder
 from kc_splatfacto.data.ply import read_ply_points
+from kc_splatfacto.registry import DataParserSpecification
 
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
 DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")  # OpenCV's coefficient order
@@ -391,8 +392,6 @@ class TransformsDataParser(DataParser):
 
 
 def _spec():
-    from kc_splatfacto.registry import DataParserSpecification
-
     return DataParserSpecification(
         config=TransformsDataParserConfig(),
         description="nerfstudio / instant-ngp transforms.json (OpenGL camera-to-world, optional split lists and PLY)",

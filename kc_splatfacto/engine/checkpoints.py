@@ -14,6 +14,7 @@ import re
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from kc_splatfacto.atomic import atomic_write
@@ -150,8 +151,6 @@ def remove_orphan_temp_files(directory: Path) -> list[Path]:
 
 def _numpy_rng_globals() -> list:
     """What ``np.random.get_state()`` pickles to: numpy's array reconstruction, ndarray, dtype (data only)."""
-    import numpy as np
-
     multiarray = getattr(np, "_core", None) or np.core
     return [multiarray.multiarray._reconstruct, np.ndarray, np.dtype, type(np.dtype(np.uint32))]
 

@@ -31,9 +31,9 @@ import numpy as np
 import torch
 
 from kc_splatfacto.data.base import DataParserConfig
+from kc_splatfacto.engine.base_config import LoggingConfig, MachineConfig, ViewerConfig
 from kc_splatfacto.engine.callbacks import RecordSink, TrainingCallback, TrainingCallbackLocation, run_callbacks
 from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, RUN_IDENTITY_KEY, run_identity, save_checkpoint
-from kc_splatfacto.engine.base_config import LoggingConfig, MachineConfig, ViewerConfig
 from kc_splatfacto.engine.config_file import save_config
 from kc_splatfacto.engine.evaluation import FINAL_LPIPS_NETS
 from kc_splatfacto.engine.gradient_shares import gradient_shares
