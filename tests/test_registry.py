@@ -1,5 +1,10 @@
 """Entry-point and environment-variable discovery of methods."""
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 
 from kc_splatfacto import registry
@@ -31,3 +36,39 @@ def test_env_var_malformed(monkeypatch):
     monkeypatch.setenv(registry.METHOD_ENV, "just-a-name")
     with pytest.raises(RegistryError, match="name=module:attribute"):
         discover_methods()
+
+
+BROKEN_PLUGIN = """
+import importlib.metadata as metadata
+real = metadata.entry_points
+
+def entry_points(**selection):
+    if selection.get("group", "").startswith("kc_splatfacto."):  # one third-party plugin that no longer imports
+        return [metadata.EntryPoint("broken", "no_such_plugin_module_xyz:spec", selection["group"])]
+    return real(**selection)
+
+metadata.entry_points = entry_points
+import kc_splatfacto.engine.config, kc_splatfacto.engine.run_io, kc_splatfacto.engine.trainer  # noqa: E401
+import kc_splatfacto.cli.eval, kc_splatfacto.cli.train  # noqa: E401
+print("imported")
+from kc_splatfacto.registry import RegistryError, discover_dataparsers
+try:
+    discover_dataparsers()
+except RegistryError as exc:
+    print("discovery:", exc)
+"""
+
+
+def test_a_broken_plugin_does_not_break_importing_the_engine(tmp_path):
+    """Importing the engine and the CLI modules discovers nothing: a broken third-party entry point fails the command
+    that lists plugins (naming itself), never ``import kc_splatfacto.engine.trainer``. A fresh interpreter, because
+    this one has imported the engine already."""
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    done = subprocess.run([sys.executable, "-c", BROKEN_PLUGIN], capture_output=True, text=True, env=env, cwd=tmp_path,
+                          timeout=600)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert lines[0] == "imported"
+    # the patched entry points are the ones discovery reads: the same plugin fails discovery, naming itself
+    assert lines[1].startswith("discovery: entry point 'broken'") and "no_such_plugin_module_xyz" in lines[1]
