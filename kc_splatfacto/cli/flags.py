@@ -154,7 +154,8 @@ def box_text(stderr: str) -> tuple[str, list[str]]:
     if not lines:
         return "", []
     title = lines[0].strip(BOX_RULES + " ")
-    sections, current = [], []
+    sections: list[str] = []
+    current: list[str] = []
     for line in lines[1:]:
         if set(line) <= set(BOX_RULES + " "):
             sections.append(" ".join(current))

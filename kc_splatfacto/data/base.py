@@ -325,7 +325,8 @@ def read_dataparser_transforms(path: str | Path) -> PoseNormalization:
     except FileNotFoundError:
         raise DataParserError(f"{path} does not exist: it is written by training into the run folder") from None
     except (KeyError, ValueError, TypeError) as exc:
-        raise DataParserError(f"{path} is not a dataparser_transforms.json ({{'transform': 3x4, 'scale': s}}): {exc}")
+        raise DataParserError(f"{path} is not a dataparser_transforms.json ({{'transform': 3x4, 'scale': s}}): {exc}") \
+            from exc
     if transform.shape != (3, 4):
         raise DataParserError(f"{path}: 'transform' must be 3x4, got shape {transform.shape}")
     return PoseNormalization(transform=transform, scale=scale)
@@ -355,7 +356,9 @@ def read_text_file(path: Path) -> str:
             try:
                 return data.decode(encoding)
             except UnicodeDecodeError as exc:
-                raise DataParserError(f"{path} starts with a {encoding} byte-order mark but is not {encoding}: {exc}")
+                raise DataParserError(
+                    f"{path} starts with a {encoding} byte-order mark but is not {encoding}: {exc}"
+                ) from exc
     if b"\x00" in data:
         raise DataParserError(
             f"{path} holds NUL bytes: it looks like UTF-16 or UTF-32 without a byte-order mark; save it as UTF-8"

@@ -240,7 +240,10 @@ def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
         rgb = np.array([p.color for p in points], np.uint8).reshape(-1, 3)
         finite = np.isfinite(xyz).all(axis=1)
         if not finite.all():
-            warnings.warn(f"{model_dir}: {int((~finite).sum())} 3D points with NaN/inf coordinates were left out")
+            warnings.warn(
+                f"{model_dir}: {int((~finite).sum())} 3D points with NaN/inf coordinates were left out",
+                stacklevel=2,
+            )
             xyz, rgb = xyz[finite], rgb[finite]
     else:
         xyz, rgb = np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
@@ -248,7 +251,7 @@ def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
         shown = ", ".join(str(n) for n in dropped_points[:10]) + (" ..." if len(dropped_points) > 10 else "")
         warnings.warn(
             f"{model_dir / 'points3D.txt'}: {len(dropped_points)} 3D points with NaN/inf coordinates were left out "
-            f"(lines {shown})"
+            f"(lines {shown})", stacklevel=2
         )
     if len(xyz) and images:
         warn_points_behind_cameras(xyz, [image.world_to_camera for image in images], model_file(model_dir, "points3D"))
@@ -273,7 +276,10 @@ def check_principal_point(camera: ColmapCamera, where: str) -> None:
             "cx/cy, or a size that does not belong to this camera)"
         )
     if not inside:
-        warnings.warn(f"{text}: the views are rendered as given; check cx, cy if the images were not cropped")
+        warnings.warn(
+            f"{text}: the views are rendered as given; check cx, cy if the images were not cropped",
+            stacklevel=2,
+        )
 
 
 #: warn when more than this share of the seed points lies behind every camera
@@ -293,7 +299,7 @@ def warn_points_behind_cameras(xyz: np.ndarray, world_to_cameras: list[np.ndarra
     if count > BEHIND_SHARE_WARNING * len(xyz):
         warnings.warn(
             f"{source}: {count} of {len(xyz)} seed points are behind every camera: the points and the poses may be in "
-            "different conventions (the Gaussians starting there will not be seen)"
+            "different conventions (the Gaussians starting there will not be seen)", stacklevel=2
         )
     return count
 

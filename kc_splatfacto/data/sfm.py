@@ -278,7 +278,7 @@ def set_focal_prior(database: Path, factor: float | None, exif_focals: dict[int,
             focal = exif_focals[camera.camera_id] if factor is None else factor * max(camera.width, camera.height)
             params = np.array(camera.params, dtype=np.float64)
             params[list(camera.focal_length_idxs())] = focal
-            camera.params = params
+            camera.params = params  # type: ignore[assignment]  # pycolmap's stub says Sequence; it takes arrays
             db.update_camera(camera)
     finally:
         db.close()

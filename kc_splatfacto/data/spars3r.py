@@ -116,12 +116,15 @@ class Spars3rDataParser(DataParser):
         if dropped:
             warnings.warn(
                 f"{len(dropped)} test image(s) from {test_list} are not in the COLMAP model {model.path} and are left "
-                f"out: {', '.join(dropped)}"
+                f"out: {', '.join(dropped)}", stacklevel=2
             )
         test_names = [n for n in test_names if n in model.by_name]
         overlap = sorted(set(train_names) & set(test_names))
         if overlap:
-            warnings.warn(f"{train_list} and {test_list} share images {', '.join(overlap)}: they are in both splits")
+            warnings.warn(
+                f"{train_list} and {test_list} share images {', '.join(overlap)}: they are in both splits",
+                stacklevel=2,
+            )
         # Normalization on train and test together, each pose once, in list order.
         normalize_names = list(dict.fromkeys(train_names + test_names))
         split_names = train_names if split == "train" else test_names

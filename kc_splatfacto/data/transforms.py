@@ -277,7 +277,7 @@ class TransformsDataParser(DataParser):
         if missing:
             warnings.warn(
                 f"{json_path}: {len(missing)} frame(s) skipped because their image file is missing: "
-                + ", ".join(str(f["file_path"]) for _, f in missing)
+                + ", ".join(str(f["file_path"]) for _, f in missing), stacklevel=2
             )
         if not frames:
             raise DataParserError(f"{json_path}: none of the frames' image files exist under {base}")
