@@ -52,7 +52,7 @@ def parse_config(argv: list[str]):
 
 def _markers(config_type: Any) -> Any:
     """The tyro conventions of every kc-train command line (fixed fields hidden, booleans take a value)."""
-    return tyro.conf.SuppressFixed[tyro.conf.FlagConversionOff[config_type]]
+    return tyro.conf.SuppressFixed[tyro.conf.FlagConversionOff[config_type]]  # type: ignore[misc]  # built at run time
 
 
 def override_config(config: Any, args: list[str]) -> Any:

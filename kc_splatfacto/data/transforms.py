@@ -261,7 +261,8 @@ class TransformsDataParser(DataParser):
             raise DataParserError(f"scene {data} does not exist: check --data")
         meta, base, json_path = self.memo("transforms.json", load_transforms_json, data)
 
-        frames, missing = [], []
+        frames: list[tuple[Path, dict]] = []
+        missing: list[tuple[Path, dict]] = []
         for frame in meta["frames"]:
             if "file_path" not in frame or "transform_matrix" not in frame:
                 raise DataParserError(f"{json_path}: every frame needs 'file_path' and 'transform_matrix'")

@@ -34,7 +34,12 @@ import yaml
 from kc_splatfacto.atomic import atomic_write_text
 from kc_splatfacto.engine.validation import ConfigValueError, validate_config
 from kc_splatfacto.errors import ConfigFileError, ConfigFileNotFoundError
-from kc_splatfacto.registry import discover_dataparsers, discover_methods
+from kc_splatfacto.registry import (
+    DataParserSpecification,
+    MethodSpecification,
+    discover_dataparsers,
+    discover_methods,
+)
 
 ConfigT = TypeVar("ConfigT")
 
@@ -66,7 +71,9 @@ def _registered_packages() -> set[str]:
         for f in dataclasses.fields(value):
             walk(getattr(value, f.name, None), depth + 1)
 
-    for spec in [*discover_methods().values(), *discover_dataparsers().values()]:
+    specs: list[MethodSpecification | DataParserSpecification] = [*discover_methods().values(),
+                                                                  *discover_dataparsers().values()]
+    for spec in specs:
         walk(spec.config)
     return roots
 

@@ -32,9 +32,8 @@ def dataparser_subcommands() -> Any:
     defaults = {"auto": AutoDataParserConfig(), **{name: spec.config for name, spec in specs.items()}}
     descriptions = {"auto": "detect the format from --data (the default)",
                     **{name: spec.description for name, spec in specs.items()}}
-    return tyro.conf.OmitSubcommandPrefixes[
-        tyro.extras.subcommand_type_from_defaults(defaults, descriptions, prefix_names=False)
-    ]
+    union = tyro.extras.subcommand_type_from_defaults(defaults, descriptions, prefix_names=False)
+    return tyro.conf.OmitSubcommandPrefixes[union]  # type: ignore[valid-type]  # a type built at run time
 
 
 def install_dataparser_subcommands() -> None:

@@ -77,7 +77,9 @@ class Pipeline:
         outputs = self.model.get_outputs(batch["camera"])
         if lap is not None:
             lap("render")
-        if not bool(torch.isfinite(outputs["rgb"]).all()):
+        rgb = outputs["rgb"]
+        assert rgb is not None  # get_outputs always renders colours
+        if not bool(torch.isfinite(rgb).all()):
             return outputs, None, batch
         loss_dict = self.model.get_loss_dict(outputs, batch)
         if lap is not None:

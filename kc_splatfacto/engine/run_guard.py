@@ -303,7 +303,7 @@ def check_training_image_sizes(datamanager: DataManager, model_config: Splatfact
 def recorded_dataparser(parser: DataParserConfig) -> DataParserConfig:
     """The run's dataparser config as ``config.yml`` records it: a copy with its scene and cache paths absolute (when
     they exist), so kc-eval / kc-render work from any folder."""
-    absolute = {}
+    absolute: dict[str, Any] = {}
     for name in ("data", "cache_dir"):
         value = getattr(parser, name, None)
         if isinstance(value, (str, os.PathLike)) and str(value) != DEMO_NAME and Path(value).exists():

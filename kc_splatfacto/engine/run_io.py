@@ -12,8 +12,8 @@ from kc_splatfacto.data.dataset import ImageDataset
 from kc_splatfacto.data.detect import DEMO_NAME
 from kc_splatfacto.engine.checkpoints import (
     CHECKPOINT_DIR,
-    CHECKPOINT_PATTERN,
     check_checkpoint_fits,
+    checkpoint_step,
     find_checkpoint,
     load_checkpoint,
 )
@@ -88,7 +88,7 @@ def load_run(config_path: Path | str, step: int | None = None, device: str | tor
         config=config,
         pipeline=pipeline,
         model=model,
-        step=int(CHECKPOINT_PATTERN.match(checkpoint_path.name).group(1)),
+        step=checkpoint_step(checkpoint_path),
         run_dir=run_dir,
         train_dataset=datamanager.train_dataset,
         test_dataset=datamanager.eval_dataset,
