@@ -33,7 +33,7 @@ def dataparser_subcommands() -> Any:
     descriptions = {"auto": "detect the format from --data (the default)",
                     **{name: spec.description for name, spec in specs.items()}}
     union = tyro.extras.subcommand_type_from_defaults(defaults, descriptions, prefix_names=False)
-    return tyro.conf.OmitSubcommandPrefixes[union]  # type: ignore[misc]  # a type built at run time
+    return tyro.conf.OmitSubcommandPrefixes[union]  # type: ignore[misc,valid-type]  # a type built at run time
 
 
 def install_dataparser_subcommands() -> None:
