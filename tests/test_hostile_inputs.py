@@ -23,8 +23,7 @@ import pytest
 from kc_splatfacto.cli import eval as kc_eval
 from kc_splatfacto.cli import export as kc_export
 from kc_splatfacto.cli import train as kc_train
-from kc_splatfacto.engine.config import save_config
-from kc_splatfacto.engine.config_file import read_config_file
+from kc_splatfacto.engine.config import load_config, save_config
 from tests.hostile_scenes import colmap_scene, transforms_scene, tree_digest
 
 TOOLS = {"kc-train": kc_train.entrypoint, "kc-eval": kc_eval.entrypoint, "kc-export": kc_export.entrypoint}
@@ -440,7 +439,7 @@ def prepare(case: Case, tmp_path: Path, templates, finished_run) -> Path:
         shutil.copytree(template_root / "scene", root / "scene")
         shutil.copytree(run_dir, root / "run")
         config_path = root / "run" / "config.yml"
-        config = read_config_file(config_path)  # the copy trains on the case's copy of the scene
+        config = load_config(config_path)  # the copy trains on the case's copy of the scene
         config.pipeline.datamanager.data = None
         config.pipeline.datamanager.dataparser.data = root / "scene"
         save_config(config, config_path)

@@ -1,6 +1,9 @@
 """Entry-point and environment-variable discovery of methods."""
 
+import os
+import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -53,3 +56,39 @@ def test_a_namesake_method_configs_package_is_refused(tmp_path, monkeypatch):
         discover_methods()
     for name in [m for m in sys.modules if m == "method_configs" or m.startswith("method_configs.")]:
         del sys.modules[name]  # the namesake goes; monkeypatch puts the project's own modules back
+
+
+BROKEN_PLUGIN = """
+import importlib.metadata as metadata
+real = metadata.entry_points
+
+def entry_points(**selection):
+    if selection.get("group", "").startswith("kc_splatfacto."):  # one third-party plugin that no longer imports
+        return [metadata.EntryPoint("broken", "no_such_plugin_module_xyz:spec", selection["group"])]
+    return real(**selection)
+
+metadata.entry_points = entry_points
+import kc_splatfacto.engine.config, kc_splatfacto.engine.run_io, kc_splatfacto.engine.trainer  # noqa: E401
+import kc_splatfacto.cli.eval, kc_splatfacto.cli.train  # noqa: E401
+print("imported")
+from kc_splatfacto.registry import RegistryError, discover_dataparsers
+try:
+    discover_dataparsers()
+except RegistryError as exc:
+    print("discovery:", exc)
+"""
+
+
+def test_a_broken_plugin_does_not_break_importing_the_engine(tmp_path):
+    """Importing the engine and the CLI modules discovers nothing: a broken third-party entry point fails the command
+    that lists plugins (naming itself), never ``import kc_splatfacto.engine.trainer``. A fresh interpreter, because
+    this one has imported the engine already."""
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    done = subprocess.run([sys.executable, "-c", BROKEN_PLUGIN], capture_output=True, text=True, env=env, cwd=tmp_path,
+                          timeout=600)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert lines[0] == "imported"
+    # the patched entry points are the ones discovery reads: the same plugin fails discovery, naming itself
+    assert lines[1].startswith("discovery: entry point 'broken'") and "no_such_plugin_module_xyz" in lines[1]

@@ -14,10 +14,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Iterable
 
+import cv2
 import numpy as np
 import torch
 
 from kc_splatfacto.analysis.figures import pyplot, save_figure
+from kc_splatfacto.losses.wavelets import dwt2
 
 #: Orientation names of (cH, cV, cD), the paper's naming.
 ORIENTATIONS = ("LH", "HL", "HH")
@@ -152,8 +154,6 @@ def coarse_subband_differences(
     Returns:
         [3, h, w] float64: (LH, HL, HH) of ``pred`` minus those of ``gt`` at the coarsest level.
     """
-    from kc_splatfacto.losses.wavelets import dwt2
-
     p = dwt2(_to_bchw(pred, "pred"), wave=wave, levels=levels, mode=mode)
     g = dwt2(_to_bchw(gt, "gt"), wave=wave, levels=levels, mode=mode)
     diff = (p.details[-1] - g.details[-1]).mean(dim=1)[0]  # [3, h, w]
@@ -172,10 +172,6 @@ def wavelet_pixel_error_ratio(
     Returns:
         [H, W] float64; > 0 where wavelet errors dominate, < 0 where pixel errors dominate.
     """
-    import cv2
-
-    from kc_splatfacto.losses.wavelets import dwt2
-
     p_img, g_img = _to_bchw(pred, "pred"), _to_bchw(gt, "gt")
     height, width = p_img.shape[-2:]
     p = dwt2(p_img, wave=wave, levels=levels, mode=mode)

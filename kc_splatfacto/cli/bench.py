@@ -32,7 +32,6 @@ Example (the committed castle-P30 result)::
 
 from __future__ import annotations
 
-
 import argparse
 import copy
 import json
@@ -44,8 +43,13 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from kc_splatfacto.analysis.report import eval_rows, write_report
+from kc_splatfacto.analysis.diagnostics import plot_kurtosis_gap_comparison
+from kc_splatfacto.analysis.report import eval_rows, plot_gradient_shares, write_report
 from kc_splatfacto.atomic import atomic_write_text
+from kc_splatfacto.cli.main import run_cli
+from kc_splatfacto.cli.train import override_config
+from kc_splatfacto.data.detect import AutoDataParserConfig
+from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.optimizers import SPLATFACTO_SCHEDULE_STEPS  # ``--steps-scale auto``: budget / this
 from kc_splatfacto.errors import UserError
 from kc_splatfacto.registry import discover_methods
@@ -95,8 +99,6 @@ def apply_override(config: Any, assignment: str) -> Any:
     """``config`` with one dotted field set from ``'pipeline.model.kc_weight=1e-4'``, parsed by kc-train's own
     parser (:func:`kc_splatfacto.cli.train.override_config`): the same flags, types, choices and errors as
     ``kc-train METHOD --pipeline.model.kc-weight 1e-4``. Several values (a tuple field) are separated by spaces."""
-    from kc_splatfacto.cli.train import override_config
-
     key, sep, value = assignment.partition("=")
     if not sep or not key.strip():
         raise BenchArgumentError(f"--set '{assignment}': expected dotted.field=value")
@@ -123,8 +125,6 @@ def build_run_config(
     overrides: Sequence[str] = (),
 ) -> Any:
     """A fresh TrainerConfig for one bench run (the registered config is never modified)."""
-    from kc_splatfacto.data.detect import AutoDataParserConfig
-
     config = copy.deepcopy(spec_config)
     config.method_name = method
     config.experiment_name = experiment
@@ -336,8 +336,6 @@ def write_per_view(views: Sequence[dict], out_dir: Path) -> dict[str, Path]:
 
 def _lowest_seed_records(runs: Sequence[dict]):
     """Per scene (in run order): (scene, its lowest seed, {method: that run's metrics.jsonl records})."""
-    from kc_splatfacto.engine.metrics_log import read_metrics
-
     for scene in dict.fromkeys(r["scene"] for r in runs):
         seed = min(r["seed"] for r in runs if r["scene"] == scene)
         records = {
@@ -351,8 +349,6 @@ def _lowest_seed_records(runs: Sequence[dict]):
 def write_kurtosis_gap_plots(runs: Sequence[dict], out_dir: Path) -> dict[str, Path]:
     """Per scene, ``kurtosis_gap_<scene>.png``: the render-vs-GT band-kurtosis gap over training, one curve per
     method, for the lowest seed (see :func:`kc_splatfacto.analysis.diagnostics.plot_kurtosis_gap_comparison`)."""
-    from kc_splatfacto.analysis.diagnostics import plot_kurtosis_gap_comparison
-
     paths = {}
     for scene, seed, records in _lowest_seed_records(runs):
         try:
@@ -367,8 +363,6 @@ def write_kurtosis_gap_plots(runs: Sequence[dict], out_dir: Path) -> dict[str, P
 def write_gradient_share_plots(runs: Sequence[dict], out_dir: Path) -> dict[str, Path]:
     """Per scene, ``gradient_shares_<scene>.png``: each loss term's image-gradient norm relative to the photometric
     term's over training, one panel per method, for the lowest seed (:func:`report.plot_gradient_shares`)."""
-    from kc_splatfacto.analysis.report import plot_gradient_shares
-
     paths = {}
     for scene, seed, records in _lowest_seed_records(runs):
         path = plot_gradient_shares(records, out_dir / f"gradient_shares_{scene}.png", title=f"{scene}, seed {seed}")
@@ -437,8 +431,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def entrypoint(argv: list[str] | None = None) -> int:
     """``kc-bench``: user errors are one line and exit code 2 (``--debug`` shows the traceback)."""
-    from kc_splatfacto.cli.main import run_cli
-
     return run_cli("kc-bench", main, argv)
 
 

@@ -21,10 +21,13 @@ import sys
 import time
 from pathlib import Path
 
+import torch
+
 from kc_splatfacto.atomic import atomic_write_text
 from kc_splatfacto.cli.main import ArgumentParser, add_run_arguments, check_output_path, existing_run_config, run_cli
+from kc_splatfacto.engine.evaluation import evaluate_split
+from kc_splatfacto.engine.run_io import load_run
 from kc_splatfacto.errors import UserError
-
 
 SSIM_CONVENTION = (
     "SSIM (not D-SSIM): kornia.metrics.ssim, gaussian window 11x11 sigma 1.5, C1=0.01^2, C2=0.03^2, reflect padding, "
@@ -40,8 +43,6 @@ def checkpoint_path(run_dir: Path, step: int) -> Path:
 
 def render_view(model, cameras, index: int):
     """[H,W,3] float render of camera ``index`` (no gradients), clamped to [0,1], and the seconds it took."""
-    import torch
-
     start = time.perf_counter()
     with torch.no_grad():
         outputs = model.get_outputs(cameras[index])
@@ -55,8 +56,6 @@ def evaluate_loaded_run(loaded, split: str = "test") -> dict:
     The numbers come from :func:`kc_splatfacto.engine.evaluation.evaluate_split`, the same function the trainer's
     evaluation records use, so kc-eval and ``metrics.jsonl`` agree.
     """
-    from kc_splatfacto.engine.evaluation import evaluate_split
-
     dataset = loaded.test_dataset if split == "test" else loaded.train_dataset
     if dataset is None or len(dataset) == 0:
         raise UserError(f"kc-eval: the {split} split of {loaded.run_dir} has no images; nothing to evaluate")
@@ -80,8 +79,6 @@ def evaluate_loaded_run(loaded, split: str = "test") -> dict:
 
 def run_eval(load_config: Path, output_path: Path | None = None, step: int | None = None, split: str = "test") -> dict:
     """Load a run, evaluate ``split``, write the JSON (when ``output_path``) and return it."""
-    from kc_splatfacto.engine.run_io import load_run
-
     load_config = existing_run_config("kc-eval", load_config)
     loaded = load_run(load_config, step=step, device="cpu")
     evaluation = evaluate_loaded_run(loaded, split)

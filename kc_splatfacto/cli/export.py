@@ -6,14 +6,13 @@ import sys
 from pathlib import Path
 
 from kc_splatfacto.cli.main import ArgumentParser, add_run_arguments, check_output_path, existing_run_config, run_cli
+from kc_splatfacto.engine.run_io import load_run
 from kc_splatfacto.errors import UserError
+from kc_splatfacto.model.ply import export_ply
 
 
 def run_export(load_config: Path, output_path: Path, step: int | None = None):
     """Load a run and write its Gaussians; returns :class:`kc_splatfacto.model.ply.PlyExportResult`."""
-    from kc_splatfacto.engine.run_io import load_run
-    from kc_splatfacto.model.ply import export_ply
-
     load_config = existing_run_config("kc-export", load_config)
     check_output_path(output_path, "--output-path")
     loaded = load_run(load_config, step=step, device="cpu")

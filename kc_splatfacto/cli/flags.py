@@ -14,6 +14,8 @@ import contextlib
 import dataclasses
 import io
 import re
+import sys
+import textwrap
 import types
 import typing
 from dataclasses import dataclass
@@ -21,7 +23,9 @@ from pathlib import Path
 from typing import Any
 
 from kc_splatfacto.cli.main import did_you_mean
+from kc_splatfacto.data.detect import AutoDataParserConfig
 from kc_splatfacto.errors import UserError
+from kc_splatfacto.registry import discover_dataparsers
 
 #: the dataparser subcommand field (its subcommands' flags have no prefix) and where it sits in a TrainerConfig
 DATAPARSER_FIELD = "pipeline.datamanager.dataparser"
@@ -135,9 +139,6 @@ def config_flags(config: Any, prefix: str = "") -> list[Flag]:
 
 def dataparser_flags() -> dict[str, list[Flag]]:
     """Each dataparser subcommand's flags (no prefix), ``auto`` first."""
-    from kc_splatfacto.data.detect import AutoDataParserConfig
-    from kc_splatfacto.registry import discover_dataparsers
-
     configs = {"auto": AutoDataParserConfig(), **{n: s.config for n, s in discover_dataparsers().items()}}
     return {name: config_flags(config) for name, config in configs.items()}
 
@@ -153,7 +154,8 @@ def box_text(stderr: str) -> tuple[str, list[str]]:
     if not lines:
         return "", []
     title = lines[0].strip(BOX_RULES + " ")
-    sections, current = [], []
+    sections: list[str] = []
+    current: list[str] = []
     for line in lines[1:]:
         if set(line) <= set(BOX_RULES + " "):
             sections.append(" ".join(current))
@@ -183,8 +185,6 @@ def one_line_error(stderr: str, valid_flags: list[str], subcommands: list[str], 
 def tyro_errors_as_one_line(valid_flags: list[str], subcommands: list[str], prog: str):
     """Run a tyro parse; its error box (stderr, SystemExit 2) becomes a :class:`UserError` of one line. Help text and
     a successful parse pass through untouched (anything else it printed to stderr is printed after it)."""
-    import sys
-
     captured = io.StringIO()
     try:
         with contextlib.redirect_stderr(captured):
@@ -204,8 +204,6 @@ def _format_default(value: Any) -> str:
 
 
 def _wrap(head: str, names: list[str], width: int) -> list[str]:
-    import textwrap
-
     return textwrap.wrap(f"{head}{', '.join(names)}", width=width, subsequent_indent="    ", break_on_hyphens=False)
 
 

@@ -14,6 +14,7 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from kc_splatfacto.engine.run_guard import check_writable_folder
 from kc_splatfacto.errors import UserError
 
 DEBUG_FLAG = "--debug"
@@ -124,8 +125,6 @@ def existing_run_config(prog: str, load_config) -> Path:
 def check_output_path(path, what: str) -> None:
     """The folder of an output file must be writable, and the path not a folder: checked before the (slow) run
     loading."""
-    from kc_splatfacto.engine.run_guard import check_writable_folder
-
     if Path(path).is_dir():
         raise UserError(f"{what} {path} is a folder: pass the path of the file to write (it may be inside that folder)")
     check_writable_folder(Path(path).absolute().parent, f"the folder of {what}")

@@ -16,16 +16,31 @@ MPEG-4 part 2 (``mp4v``), which the command names as a fallback (most browsers d
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
+import numpy as np
+
+from kc_splatfacto.analysis.camera_path import (
+    camera_path_dict,
+    interpolate_camera_path,
+    read_camera_path,
+    spiral_camera_path,
+)
+from kc_splatfacto.analysis.diagnostics import plot_kurtosis_history, save_view_diagnostics
 from kc_splatfacto.atomic import atomic_write_text
+from kc_splatfacto.cli.eval import render_view
 from kc_splatfacto.cli.main import ArgumentParser, add_run_arguments, existing_run_config, run_cli
+from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.run_guard import check_writable_folder
+from kc_splatfacto.engine.run_io import load_run
 from kc_splatfacto.errors import UserError
+from kc_splatfacto.model.splatfacto import composite_with_background
 
 #: OpenCV FourCC of the fallback writer; 'mp4v' (MPEG-4 part 2) ships with every opencv-python wheel.
 MP4_FOURCC = "mp4v"
@@ -53,26 +68,16 @@ class VideoResult:
 
 def to_uint8_rgb(rgb):
     """[H,W,3] float tensor in [0,1] -> contiguous uint8 RGB numpy array."""
-    import numpy as np
-
     return np.ascontiguousarray((rgb.detach().cpu().clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8))
 
 
 def to_uint8_bgr(rgb):
     """[H,W,3] float tensor in [0,1] -> contiguous uint8 BGR numpy array for OpenCV."""
-    import numpy as np
-
     return np.ascontiguousarray(to_uint8_rgb(rgb)[..., ::-1])
 
 
 def write_side_by_side(model, dataset, out_dir: Path) -> list[Path]:
     """One PNG per view of ``dataset``: [render | ground truth]."""
-    import cv2
-    import numpy as np
-
-    from kc_splatfacto.cli.eval import render_view
-    from kc_splatfacto.model.splatfacto import composite_with_background
-
     out_dir.mkdir(parents=True, exist_ok=True)
     filenames = getattr(getattr(dataset, "outputs", None), "image_filenames", None)
     paths = []
@@ -89,8 +94,6 @@ def write_side_by_side(model, dataset, out_dir: Path) -> list[Path]:
 
 def even_size(frame):
     """``frame`` [H,W,3] with its last row/column repeated where H or W is odd (H.264's 4:2:0 needs even sides)."""
-    import numpy as np
-
     pad_h, pad_w = frame.shape[0] % 2, frame.shape[1] % 2
     return np.pad(frame, ((0, pad_h), (0, pad_w), (0, 0)), mode="edge") if pad_h or pad_w else frame
 
@@ -116,8 +119,6 @@ def _write_h264(frames_rgb, path: Path, fps: float) -> tuple[int, int]:
 
 
 def _write_mp4v(frames_rgb, path: Path, fps: float) -> tuple[int, int]:
-    import cv2
-
     writer, size = None, None
     try:
         for frame in frames_rgb:
@@ -146,7 +147,6 @@ def read_video(path: Path) -> tuple[int, tuple[int, int], str]:
         meta = next(reader)
         count = sum(1 for _ in reader)
         return count, tuple(meta["size"]), str(meta.get("codec", "")).split(" ")[0]
-    import cv2
 
     capture = cv2.VideoCapture(str(path))
     try:
@@ -178,8 +178,6 @@ def write_video(frames_rgb, path: Path, fps: float, codec: str = "h264") -> Vide
     ``codec`` "h264" falls back to "mp4v" (``VideoResult.fallback_reason`` says why) when imageio-ffmpeg is absent.
     Raises RuntimeError when the written file does not decode to every frame at the written size.
     """
-    import itertools
-
     frames_rgb = iter(frames_rgb)
     first = next(frames_rgb, None)
     if first is None:
@@ -208,8 +206,6 @@ def write_video(frames_rgb, path: Path, fps: float, codec: str = "h264") -> Vide
 
 def path_cameras(loaded, path_kind: str, num_frames: int):
     """The built-in path's cameras: through the training views (interpolate) or LLFF's spiral around them."""
-    from kc_splatfacto.analysis.camera_path import interpolate_camera_path, spiral_camera_path
-
     keys = loaded.train_dataset.cameras if loaded.train_dataset is not None and len(loaded.train_dataset) else None
     if keys is None:
         raise UserError(f"kc-render: the train split of {loaded.run_dir} is empty; no path through its views")
@@ -221,19 +217,12 @@ def path_cameras(loaded, path_kind: str, num_frames: int):
 
 def render_path_video(model, cameras, path: Path, fps: float, codec: str = "h264") -> VideoResult:
     """Render every camera of ``cameras`` into an mp4 (see :func:`write_video`)."""
-    from kc_splatfacto.cli.eval import render_view
-
     return write_video((to_uint8_rgb(render_view(model, cameras, i)[0]) for i in range(len(cameras))), path, fps,
                        codec)
 
 
 def write_diagnostics(loaded, out_dir: Path, views: list[int]) -> list[Path]:
     """Wavelet diagnostics PNGs for the given test views, and the kurtosis history when the log has it."""
-    from kc_splatfacto.cli.eval import render_view
-    from kc_splatfacto.analysis.diagnostics import plot_kurtosis_history, save_view_diagnostics
-    from kc_splatfacto.engine.metrics_log import read_metrics
-    from kc_splatfacto.model.splatfacto import composite_with_background
-
     paths = []
     dataset = loaded.test_dataset
     for i in views:
@@ -269,9 +258,6 @@ def run_render(
     codec: str = "h264",
 ) -> dict:
     """Render a run (see the module docstring); ``output_dir`` None is ``<run folder>/renders``."""
-    from kc_splatfacto.analysis.camera_path import camera_path_dict, read_camera_path
-    from kc_splatfacto.engine.run_io import load_run
-
     load_config = existing_run_config("kc-render", load_config)
     if video and not (math.isfinite(fps) and fps > 0):
         raise UserError(f"kc-render: --fps must be a positive number, got {fps}")

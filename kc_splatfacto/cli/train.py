@@ -23,19 +23,27 @@ import copy
 import sys
 from typing import Any
 
+import tyro
 
+from kc_splatfacto.cli.flags import config_flags, dataparser_flags, short_help, tyro_errors_as_one_line
+from kc_splatfacto.cli.main import did_you_mean, run_cli
+from kc_splatfacto.engine.datamanager import install_dataparser_subcommands
+from kc_splatfacto.engine.trainer import TrainingDivergedError
+from kc_splatfacto.engine.validation import validate_config
+from kc_splatfacto.errors import UserError
+from kc_splatfacto.model.strategy import NoGaussiansLeftError
 from kc_splatfacto.registry import discover_methods
+from kc_splatfacto.viewer.viewer import Viewer, import_viser
 
 DESCRIPTION = "Train a Gaussian-splatting method (KC-3DGS or Splatfacto) on a scene."
 
 
 def parse_config(argv: list[str]):
     """The TrainerConfig a command line describes (tyro subcommands, one per discovered method)."""
-    import tyro
-
     methods = discover_methods()
     if not methods:
         raise SystemExit("kc-train: no methods registered (is kc-splatfacto installed? `pip install -e .`)")
+    install_dataparser_subcommands()
     defaults = {name: copy.deepcopy(spec.config) for name, spec in methods.items()}
     descriptions = {name: spec.description for name, spec in methods.items()}
     union = _markers(tyro.extras.subcommand_type_from_defaults(defaults, descriptions))
@@ -44,24 +52,19 @@ def parse_config(argv: list[str]):
 
 def _markers(config_type: Any) -> Any:
     """The tyro conventions of every kc-train command line (fixed fields hidden, booleans take a value)."""
-    import tyro
-
-    return tyro.conf.SuppressFixed[tyro.conf.FlagConversionOff[config_type]]
+    return tyro.conf.SuppressFixed[tyro.conf.FlagConversionOff[config_type]]  # type: ignore[misc]  # built at run time
 
 
 def override_config(config: Any, args: list[str]) -> Any:
     """A copy of ``config`` with kc-train's dotted flags applied (``["--pipeline.model.kc-weight", "1e-4"]``):
     the one override path, shared by kc-bench's ``--set``."""
-    import tyro
-
+    install_dataparser_subcommands()
     return tyro.cli(_markers(type(config)), default=copy.deepcopy(config), args=list(args),
                     description=DESCRIPTION)
 
 
 def entrypoint(argv: list[str] | None = None) -> int:
     """``kc-train``: user errors are one line and exit code 2 (``--debug`` shows the traceback)."""
-    from kc_splatfacto.cli.main import run_cli
-
     return run_cli("kc-train", main, argv)
 
 
@@ -72,10 +75,6 @@ HELP_ALL_FLAG = "--help-all"
 def parse_command_line(argv: list[str]):
     """:func:`parse_config` as a person meets it: a misspelt method, flag or dataparser is one line naming the
     closest valid names (a :class:`UserError`, exit 2); ``METHOD --help`` is one screen, ``--help-all`` tyro's."""
-    from kc_splatfacto.cli.flags import config_flags, dataparser_flags, short_help, tyro_errors_as_one_line
-    from kc_splatfacto.cli.main import did_you_mean
-    from kc_splatfacto.errors import UserError
-
     methods = discover_methods()
     method = argv[0] if argv and not argv[0].startswith("-") else None
     if method is not None and method not in methods:
@@ -118,11 +117,6 @@ def main(argv: list[str]) -> int:
         argv = ["--help"]
     config = parse_command_line(expand_bare_flags(argv))
 
-    from kc_splatfacto.engine.trainer import TrainingDivergedError
-    from kc_splatfacto.engine.validation import validate_config
-    from kc_splatfacto.errors import UserError
-    from kc_splatfacto.model.strategy import NoGaussiansLeftError
-
     validate_config(config)  # every value, with its dotted name, before the device, the scene or the run folder
     try:
         config.machine.resolve_device()
@@ -164,8 +158,6 @@ def main(argv: list[str]) -> int:
 
 def attach_viewer(trainer):
     """Set the trainer up and attach a live viewer to it (its callbacks and record sink); returns the viewer."""
-    from kc_splatfacto.viewer.viewer import Viewer, import_viser
-
     import_viser()  # the install hint before the scene loads
     trainer.setup()
     datamanager = trainer.datamanager

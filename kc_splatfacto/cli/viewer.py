@@ -13,6 +13,9 @@ import threading
 from pathlib import Path
 
 from kc_splatfacto.cli.main import add_run_arguments, existing_run_config, run_cli
+from kc_splatfacto.engine.base_config import ViewerConfig
+from kc_splatfacto.engine.run_io import load_run
+from kc_splatfacto.viewer.viewer import Viewer, import_viser
 
 #: kc-viewer renders a still scene: a larger frame than the training viewer's budget allows
 DEFAULT_MAX_RENDER_PIXELS = 800 * 600
@@ -21,10 +24,6 @@ DEFAULT_MAX_RENDER_PIXELS = 800 * 600
 def open_viewer(load_config: Path, step: int | None = None, host: str = "127.0.0.1", port: int = 7007,
                 max_render_pixels: int = DEFAULT_MAX_RENDER_PIXELS):
     """The :class:`~kc_splatfacto.viewer.viewer.Viewer` of a finished run (serving; call ``serve_forever``)."""
-    from kc_splatfacto.engine.config import ViewerConfig
-    from kc_splatfacto.engine.run_io import load_run
-    from kc_splatfacto.viewer.viewer import Viewer, import_viser
-
     import_viser()  # the install hint before the (slow) run loading
     loaded = load_run(load_config, step=step, device="cpu")
     test = loaded.test_dataset

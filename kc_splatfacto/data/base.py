@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import unicodedata
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -22,8 +23,8 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from kc_splatfacto.data.outputs import Cameras, DataparserOutputs
 from kc_splatfacto.atomic import atomic_write_text
+from kc_splatfacto.data.outputs import Cameras, DataparserOutputs
 from kc_splatfacto.errors import UserError
 
 SPLITS = ("train", "val", "test")
@@ -324,7 +325,8 @@ def read_dataparser_transforms(path: str | Path) -> PoseNormalization:
     except FileNotFoundError:
         raise DataParserError(f"{path} does not exist: it is written by training into the run folder") from None
     except (KeyError, ValueError, TypeError) as exc:
-        raise DataParserError(f"{path} is not a dataparser_transforms.json ({{'transform': 3x4, 'scale': s}}): {exc}")
+        raise DataParserError(f"{path} is not a dataparser_transforms.json ({{'transform': 3x4, 'scale': s}}): {exc}") \
+            from exc
     if transform.shape != (3, 4):
         raise DataParserError(f"{path}: 'transform' must be 3x4, got shape {transform.shape}")
     return PoseNormalization(transform=transform, scale=scale)
@@ -354,7 +356,9 @@ def read_text_file(path: Path) -> str:
             try:
                 return data.decode(encoding)
             except UnicodeDecodeError as exc:
-                raise DataParserError(f"{path} starts with a {encoding} byte-order mark but is not {encoding}: {exc}")
+                raise DataParserError(
+                    f"{path} starts with a {encoding} byte-order mark but is not {encoding}: {exc}"
+                ) from exc
     if b"\x00" in data:
         raise DataParserError(
             f"{path} holds NUL bytes: it looks like UTF-16 or UTF-32 without a byte-order mark; save it as UTF-8"
@@ -368,8 +372,6 @@ def read_text_file(path: Path) -> str:
 
 
 def _is_invisible(char: str) -> bool:
-    import unicodedata
-
     return unicodedata.category(char) in ("Cf", "Cc")  # format (zero-width, BOM, bidi) and control characters
 
 

@@ -21,11 +21,14 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import shutil
+import tempfile
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+import cv2
 import numpy as np
 import torch
 
@@ -38,6 +41,7 @@ from kc_splatfacto.data.base import (
     normalize_poses,
     scene_scale_of,
 )
+from kc_splatfacto.data.colmap_files import check_model_files
 from kc_splatfacto.data.images import (
     derived_is_fresh,
     derived_root,
@@ -46,9 +50,9 @@ from kc_splatfacto.data.images import (
     read_image,
     write_derived,
 )
-from kc_splatfacto.data.colmap_files import check_model_files
 from kc_splatfacto.data.outputs import DataparserOutputs
 from kc_splatfacto.data.paths import inside_folder
+from kc_splatfacto.registry import DataParserSpecification
 
 # COLMAP model folders tried in order when none is configured (nerfstudio's default is colmap/sparse/0).
 DEFAULT_MODEL_DIRS = ("sparse/0", "colmap/sparse/0", "sparse")
@@ -236,7 +240,10 @@ def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
         rgb = np.array([p.color for p in points], np.uint8).reshape(-1, 3)
         finite = np.isfinite(xyz).all(axis=1)
         if not finite.all():
-            warnings.warn(f"{model_dir}: {int((~finite).sum())} 3D points with NaN/inf coordinates were left out")
+            warnings.warn(
+                f"{model_dir}: {int((~finite).sum())} 3D points with NaN/inf coordinates were left out",
+                stacklevel=2,
+            )
             xyz, rgb = xyz[finite], rgb[finite]
     else:
         xyz, rgb = np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
@@ -244,7 +251,7 @@ def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
         shown = ", ".join(str(n) for n in dropped_points[:10]) + (" ..." if len(dropped_points) > 10 else "")
         warnings.warn(
             f"{model_dir / 'points3D.txt'}: {len(dropped_points)} 3D points with NaN/inf coordinates were left out "
-            f"(lines {shown})"
+            f"(lines {shown})", stacklevel=2
         )
     if len(xyz) and images:
         warn_points_behind_cameras(xyz, [image.world_to_camera for image in images], model_file(model_dir, "points3D"))
@@ -269,7 +276,10 @@ def check_principal_point(camera: ColmapCamera, where: str) -> None:
             "cx/cy, or a size that does not belong to this camera)"
         )
     if not inside:
-        warnings.warn(f"{text}: the views are rendered as given; check cx, cy if the images were not cropped")
+        warnings.warn(
+            f"{text}: the views are rendered as given; check cx, cy if the images were not cropped",
+            stacklevel=2,
+        )
 
 
 #: warn when more than this share of the seed points lies behind every camera
@@ -289,7 +299,7 @@ def warn_points_behind_cameras(xyz: np.ndarray, world_to_cameras: list[np.ndarra
     if count > BEHIND_SHARE_WARNING * len(xyz):
         warnings.warn(
             f"{source}: {count} of {len(xyz)} seed points are behind every camera: the points and the poses may be in "
-            "different conventions (the Gaussians starting there will not be seen)"
+            "different conventions (the Gaussians starting there will not be seen)", stacklevel=2
         )
     return count
 
@@ -354,9 +364,6 @@ def _non_finite_point_lines(points_txt: Path) -> list[int]:
 
 def _read_without_point_lines(pycolmap, model_dir: Path, skip_lines: list[int]):
     """The text model of ``model_dir`` read with the ``points3D.txt`` lines ``skip_lines`` left out (a temp copy)."""
-    import shutil
-    import tempfile
-
     skip = set(skip_lines)
     with tempfile.TemporaryDirectory(prefix="kc_colmap_") as tmp:
         for path in model_dir.iterdir():
@@ -404,8 +411,6 @@ def undistorted_pinhole(camera: ColmapCamera) -> tuple[np.ndarray, tuple[int, in
     Returns:
         (new_k [3,3] for the full frame, roi (x, y, w, h)); pixel centres at +0.5 like COLMAP.
     """
-    import cv2
-
     k_cv = _k_opencv(camera)
     new_k, roi = cv2.getOptimalNewCameraMatrix(k_cv, camera.distortion, (camera.width, camera.height), 0)
     x, y, w, h = (int(v) for v in roi)
@@ -428,8 +433,6 @@ def _k_opencv(camera: ColmapCamera) -> np.ndarray:
 
 def undistort_image(image: np.ndarray, camera: ColmapCamera) -> np.ndarray:
     """[H,W,C] image of a distorted ``camera`` -> cropped pinhole image of :func:`undistorted_pinhole`."""
-    import cv2
-
     new_k, (x, y, w, h) = undistorted_pinhole(camera)
     new_k_cv = new_k.copy()
     new_k_cv[0, 2] += x - 0.5
@@ -710,8 +713,6 @@ class ColmapDataParser(DataParser):
 
 
 def _spec():
-    from kc_splatfacto.registry import DataParserSpecification
-
     return DataParserSpecification(
         config=ColmapDataParserConfig(),
         description="COLMAP scene: images/ + sparse/0 (.bin or .txt); eval modes interval/fraction/filename/all",

@@ -32,6 +32,7 @@ import torch
 from kc_splatfacto.data.base import CACHE_ENV, DataParserError, default_cache_dir
 from kc_splatfacto.data.images import write_image_atomic
 from kc_splatfacto.data.spars3r import Spars3rDataParser, Spars3rDataParserConfig
+from kc_splatfacto.registry import DataParserSpecification
 from kc_splatfacto.render.projection import rotmat_to_quat
 
 # Bump when the generator changes: it is part of the cache key, so stale scenes are never reused.
@@ -482,8 +483,6 @@ class DemoDataParserConfig(Spars3rDataParserConfig):
 
 
 def _spec():
-    from kc_splatfacto.registry import DataParserSpecification
-
     return DataParserSpecification(
         config=DemoDataParserConfig(),
         description="generated demo scene (boxes and planes, 24 views, 12/12 split), cached on first use",

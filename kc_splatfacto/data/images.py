@@ -12,9 +12,12 @@ import hashlib
 import json
 import os
 import stat
+import warnings
 from pathlib import Path
 
+import cv2
 import numpy as np
+from PIL import Image, UnidentifiedImageError
 
 from kc_splatfacto.atomic import atomic_write_bytes, atomic_write_text
 from kc_splatfacto.data.base import CACHE_ENV, DataParserError, default_cache_dir
@@ -31,8 +34,6 @@ def read_image(path: str | Path) -> np.ndarray:
         [H, W, 3] or [H, W, 4] uint8 (16-bit files are rounded to 8 bits; float files must hold finite values in
         [0, 1] or [0, 255], their range decides the scale, and are quantized).
     """
-    import cv2
-
     path = Path(path)
     if not path.is_file():
         raise DataParserError(f"image file {path} does not exist: check the scene's image folder")
@@ -62,10 +63,6 @@ def _bomb_error(path: Path, exc: Exception) -> DataParserError:
 def header_size(path: Path) -> tuple[int, int] | None:
     """(width, height) from the file's header through Pillow (None for formats Pillow does not know); a
     :class:`DataParserError` for a decompression bomb (Pillow's limit)."""
-    import warnings
-
-    from PIL import Image, UnidentifiedImageError
-
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # the error threshold is what counts
@@ -79,8 +76,6 @@ def header_size(path: Path) -> tuple[int, int] | None:
 
 def image_has_alpha(path: Path) -> bool:
     """Whether the image file holds an alpha channel (or a transparent palette entry), from its header."""
-    from PIL import Image
-
     try:
         with Image.open(path) as handle:
             return handle.mode in ("RGBA", "LA", "PA", "RGBa", "La") or "transparency" in handle.info
@@ -94,8 +89,6 @@ def check_complete(path: Path) -> None:
     OpenCV decodes a truncated JPEG with a flat grey lower part and only prints a libjpeg warning without the file
     name; Pillow's full decode raises instead. Formats Pillow does not know (e.g. EXR) are left to OpenCV.
     """
-    from PIL import Image, UnidentifiedImageError
-
     try:
         handle = Image.open(path)
     except UnidentifiedImageError:
@@ -153,8 +146,6 @@ def image_size(path: str | Path) -> tuple[int, int]:
 
 def write_image_atomic(path: Path, image: np.ndarray) -> None:
     """Write an RGB(A) uint8 image with OpenCV via a temp file + rename (lossless PNG unless the suffix says JPEG)."""
-    import cv2
-
     path.parent.mkdir(parents=True, exist_ok=True)
     if image.ndim == 3 and image.shape[2] == 4:
         bgr = cv2.cvtColor(image, cv2.COLOR_RGBA2BGRA)
@@ -272,7 +263,6 @@ def downscaled_paths(
     """
     if factor == 1:
         return list(image_paths)
-    import cv2
 
     folder = f"{images_dir.name}_{factor}"
     beside = images_dir.parent / folder

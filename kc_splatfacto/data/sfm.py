@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
+from PIL import Image, UnidentifiedImageError
 
 from kc_splatfacto.data.images import IMAGE_EXTENSIONS
 from kc_splatfacto.errors import UserError
@@ -183,8 +184,6 @@ def colmap_log(verbose: bool) -> Iterator[None]:
 
 def photo_sizes(photos: Path, names: list[str]) -> set[tuple[int, int]]:
     """The distinct (width, height) of the photos, from their headers."""
-    from PIL import Image, UnidentifiedImageError
-
     sizes = set()
     for name in names:
         try:
@@ -279,7 +278,7 @@ def set_focal_prior(database: Path, factor: float | None, exif_focals: dict[int,
             focal = exif_focals[camera.camera_id] if factor is None else factor * max(camera.width, camera.height)
             params = np.array(camera.params, dtype=np.float64)
             params[list(camera.focal_length_idxs())] = focal
-            camera.params = params
+            camera.params = params  # type: ignore[assignment]  # pycolmap's stub says Sequence; it takes arrays
             db.update_camera(camera)
     finally:
         db.close()
@@ -325,7 +324,7 @@ def run_mapping(database: Path, photos: Path, model_root: Path, names: list[str]
 
         every = max(1, len(names) // 10)
 
-        def registered(count=count) -> None:
+        def registered(count: list[int] = count, every: int = every) -> None:
             count[0] += 1  # called before each image after the initial pair: count + 2 are in the model
             if (count[0] + 2) % every == 0 or count[0] + 2 == len(names):
                 progress(f"      registering: {count[0] + 2}/{len(names)}")

@@ -23,6 +23,7 @@ from kc_splatfacto.data.base import DataParser, DataParserConfig, DataParserErro
 from kc_splatfacto.data.colmap import colmap_split_outputs, find_model_dir, has_model, read_colmap_model
 from kc_splatfacto.data.outputs import DataparserOutputs
 from kc_splatfacto.data.paths import check_names_inside
+from kc_splatfacto.registry import DataParserSpecification
 
 IMAGE_DIR_NAMES = ("images", "images_train+test")
 TRAIN_LIST_NAMES = ("train_list.txt", "train.txt")
@@ -115,12 +116,15 @@ class Spars3rDataParser(DataParser):
         if dropped:
             warnings.warn(
                 f"{len(dropped)} test image(s) from {test_list} are not in the COLMAP model {model.path} and are left "
-                f"out: {', '.join(dropped)}"
+                f"out: {', '.join(dropped)}", stacklevel=2
             )
         test_names = [n for n in test_names if n in model.by_name]
         overlap = sorted(set(train_names) & set(test_names))
         if overlap:
-            warnings.warn(f"{train_list} and {test_list} share images {', '.join(overlap)}: they are in both splits")
+            warnings.warn(
+                f"{train_list} and {test_list} share images {', '.join(overlap)}: they are in both splits",
+                stacklevel=2,
+            )
         # Normalization on train and test together, each pose once, in list order.
         normalize_names = list(dict.fromkeys(train_names + test_names))
         split_names = train_names if split == "train" else test_names
@@ -141,8 +145,6 @@ class Spars3rDataParser(DataParser):
 
 
 def _spec():
-    from kc_splatfacto.registry import DataParserSpecification
-
     return DataParserSpecification(
         config=Spars3rDataParserConfig(),
         description="SPARS3R sparse-view scene: images/, train_list.txt, test_list.txt, COLMAP sparse/0 or sparse_*/0",

@@ -56,6 +56,7 @@ from kc_splatfacto.data.images import image_size
 from kc_splatfacto.data.outputs import DataparserOutputs
 from kc_splatfacto.data.paths import inside_folder
 from kc_splatfacto.data.ply import read_ply_points
+from kc_splatfacto.registry import DataParserSpecification
 
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
 DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")  # OpenCV's coefficient order
@@ -260,7 +261,8 @@ class TransformsDataParser(DataParser):
             raise DataParserError(f"scene {data} does not exist: check --data")
         meta, base, json_path = self.memo("transforms.json", load_transforms_json, data)
 
-        frames, missing = [], []
+        frames: list[tuple[Path, dict]] = []
+        missing: list[tuple[Path, dict]] = []
         for frame in meta["frames"]:
             if "file_path" not in frame or "transform_matrix" not in frame:
                 raise DataParserError(f"{json_path}: every frame needs 'file_path' and 'transform_matrix'")
@@ -276,7 +278,7 @@ class TransformsDataParser(DataParser):
         if missing:
             warnings.warn(
                 f"{json_path}: {len(missing)} frame(s) skipped because their image file is missing: "
-                + ", ".join(str(f["file_path"]) for _, f in missing)
+                + ", ".join(str(f["file_path"]) for _, f in missing), stacklevel=2
             )
         if not frames:
             raise DataParserError(f"{json_path}: none of the frames' image files exist under {base}")
@@ -391,8 +393,6 @@ class TransformsDataParser(DataParser):
 
 
 def _spec():
-    from kc_splatfacto.registry import DataParserSpecification
-
     return DataParserSpecification(
         config=TransformsDataParserConfig(),
         description="nerfstudio / instant-ngp transforms.json (OpenGL camera-to-world, optional split lists and PLY)",

@@ -14,6 +14,7 @@ import re
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from kc_splatfacto.atomic import atomic_write
@@ -27,6 +28,14 @@ TEMP_PATTERN = re.compile(r"^\.step-\d{9}\.ckpt\..*\.tmp$")
 
 class CheckpointNotFoundError(CheckpointError, FileNotFoundError):
     """No checkpoint where one was asked for."""
+
+
+def checkpoint_step(path: Path) -> int:
+    """The step of a checkpoint file named by :func:`checkpoint_name`."""
+    match = CHECKPOINT_PATTERN.match(Path(path).name)
+    if match is None:
+        raise ValueError(f"{path} is not a checkpoint file name (step-NNNNNNNNN.ckpt)")
+    return int(match.group(1))
 
 
 def checkpoint_name(step: int) -> str:
@@ -64,7 +73,7 @@ def list_checkpoints(directory: Path) -> list[Path]:
     if not directory.is_dir():
         return []
     found = [p for p in directory.iterdir() if CHECKPOINT_PATTERN.match(p.name)]
-    return sorted(found, key=lambda p: int(CHECKPOINT_PATTERN.match(p.name).group(1)))
+    return sorted(found, key=checkpoint_step)
 
 
 def find_checkpoint(load_dir: Path, step: int | None = None) -> Path:
@@ -98,7 +107,7 @@ def find_checkpoint(load_dir: Path, step: int | None = None) -> Path:
         return checkpoints[-1]
     path = load_dir / checkpoint_name(step)
     if not path.is_file():
-        steps = [int(CHECKPOINT_PATTERN.match(p.name).group(1)) for p in checkpoints]
+        steps = [checkpoint_step(p) for p in checkpoints]
         raise CheckpointNotFoundError(f"no checkpoint for step {step} in {load_dir} (has steps {steps})")
     return path
 
@@ -150,8 +159,6 @@ def remove_orphan_temp_files(directory: Path) -> list[Path]:
 
 def _numpy_rng_globals() -> list:
     """What ``np.random.get_state()`` pickles to: numpy's array reconstruction, ndarray, dtype (data only)."""
-    import numpy as np
-
     multiarray = getattr(np, "_core", None) or np.core
     return [multiarray.multiarray._reconstruct, np.ndarray, np.dtype, type(np.dtype(np.uint32))]
 

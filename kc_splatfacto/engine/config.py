@@ -1,132 +1,38 @@
-"""The engine's configs that build nothing themselves: where to run (:class:`MachineConfig`), what to log
-(:class:`LoggingConfig`; engine/loggers.py builds its backends) and how to watch (:class:`ViewerConfig`; the viewer
-package builds the viewer from it).
+"""A run's ``config.yml`` as a :class:`~kc_splatfacto.engine.trainer.TrainerConfig`: :func:`load_config` and
+:func:`save_config`, and the class names ``config.yml`` files of earlier versions give.
 
-Every config that builds something lives beside the class it builds and has ``setup()``:
-``trainer.TrainerConfig -> Trainer``, ``pipeline.PipelineConfig -> Pipeline``, ``datamanager.DataManagerConfig ->
-DataManager``, ``model.splatfacto.SplatfactoModelConfig -> SplatfactoModel``, ``optimizers.OptimizersConfig``. This
-module imports none of them, so the engine has no import circle.
+This module sits above the trainer (it imports ``TrainerConfig`` to say what a ``config.yml`` must hold); the reader
+itself (:mod:`kc_splatfacto.engine.config_file`) sits below it, told the expected class by its caller. PyYAML wrote
+``!!python/object:kc_splatfacto.engine.config.TrainerConfig`` (and ``...PipelineConfig``, ``...DataManagerConfig``,
+``...MachineConfig``, ``...LoggingConfig``, ``...ViewerConfig``) before those classes moved beside what they build or
+into :mod:`~kc_splatfacto.engine.base_config`; the reader resolves such a name by attribute lookup in this module,
+which is why it imports them.
 """
 
 from __future__ import annotations
 
-import importlib
-import random
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
-import numpy as np
-import torch
-import yaml
-
-from kc_splatfacto.atomic import atomic_write_text
-
-
-def _gsplat_importable() -> bool:
-    try:
-        import gsplat  # noqa: F401
-    except Exception:  # ImportError, or a CUDA build failing at import
-        return False
-    return True
+from kc_splatfacto.engine.base_config import LoggingConfig, MachineConfig, ViewerConfig
+from kc_splatfacto.engine.config_file import read_config_file, save_config
+from kc_splatfacto.engine.datamanager import DataManagerConfig
+from kc_splatfacto.engine.pipeline import PipelineConfig
+from kc_splatfacto.engine.trainer import TrainerConfig
 
 
-@dataclass
-class MachineConfig:
-    """Where and how reproducibly to run."""
-
-    seed: int = 42
-    """seed of torch, numpy and python's random"""
-    device: str = "auto"
-    """'auto' (CUDA when available and gsplat imports, else CPU), 'cpu', 'cuda', 'cuda:1', ..."""
-
-    def resolve_device(self) -> torch.device:
-        if self.device == "auto":
-            # CUDA only pays with gsplat's kernels: the rasterization backend "auto" refuses CUDA tensors without
-            # gsplat (the compiled rasterizer is CPU-only), so without gsplat training stays on the CPU
-            return torch.device("cuda" if torch.cuda.is_available() and _gsplat_importable() else "cpu")
-        device = torch.device(self.device)
-        if device.type == "cuda" and not torch.cuda.is_available():
-            raise RuntimeError(f"--machine.device {self.device}: CUDA is not available here; use 'cpu' or 'auto'")
-        return device
-
-    def seed_everything(self) -> None:
-        random.seed(self.seed)
-        np.random.seed(self.seed)
-        torch.manual_seed(self.seed)
-
-
-@dataclass
-class LoggingConfig:
-    """What the trainer writes while it runs."""
-
-    steps_per_log: int = 10
-    """train records in metrics.jsonl (with per-band kurtosis) every this many steps"""
-    progress_bar: bool = True
-    """progress on stderr: a tqdm bar on a terminal, else a line every ``steps_per_progress_line`` steps"""
-    steps_per_progress_line: int = 100
-    """when stderr is not a terminal (a log file, CI): one progress line every this many steps"""
-    profile_phases: bool = False
-    """synchronize and time each phase of a step (render, losses, backward, optimizer, density control)"""
-    steps_per_gradient_shares: int = 100
-    """every this many steps a ``gradient_shares`` record: each loss term's image-gradient norm relative to the
-    photometric term's (engine/gradient_shares.py; ~60 ms on a 192x128 CPU render, excluded from train_s); 0 turns it off"""
-    tensorboard: bool = False
-    """also write tensorboard event files into the run folder (loss terms, PSNR/SSIM/LPIPS, Gaussian count, step
-    time, eval images); needs ``pip install 'kc-splatfacto[tensorboard]'``"""
-    wandb: bool = False
-    """also log to wandb, offline, into the run folder's wandb/ (``wandb sync`` uploads it later); needs
-    ``pip install 'kc-splatfacto[wandb]'``"""
-    wandb_project: str = "kc-splatfacto"
-    """the wandb project the offline run belongs to"""
-    eval_images: int = 1
-    """eval views whose render beside the ground truth tensorboard/wandb receive at each evaluation (0: none)"""
-
-
-@dataclass
-class ViewerConfig:
-    """The live viewer of ``kc-train --viewer True`` (viser, in the browser); ``kc-viewer`` reads the same fields."""
-
-    enabled: bool = False
-    """serve the scene in the browser while it trains (needs ``pip install 'kc-splatfacto[viewer]'``)"""
-    host: str = "127.0.0.1"
-    """address the viewer listens on ('0.0.0.0' for other machines)"""
-    port: int = 7007
-    """port of the viewer (nerfstudio's default); the next free one when taken"""
-    max_render_pixels: int = 160 * 120
-    """the largest render the viewer asks of the rasterizer while training (the browser scales it up)"""
-    render_share: float = 0.05
-    """at most this fraction of the wall-clock time goes into viewer renders while training (nerfstudio's
-    'train util' is 1 minus it)"""
-    quit_on_train_completion: bool = False
-    """exit when training ends instead of serving the finished scene until Ctrl-C"""
-
-
-
-def save_config(config: Any, path: Path) -> None:
-    """Write a run's full config (a ``TrainerConfig``) as YAML (PyYAML's object dump, as nerfstudio writes it),
-    atomically."""
-    atomic_write_text(path, yaml.dump(config, Dumper=yaml.Dumper, sort_keys=False))
-
-
-def load_config(path: Path | str) -> Any:
+def load_config(path: Path | str) -> TrainerConfig:
     """Read a ``config.yml`` written by :func:`save_config`: the run's ``TrainerConfig``, through a safe loader that
     rebuilds only the project's (and registered plugins') config dataclasses (a config file must not run code)."""
-    from kc_splatfacto.engine.config_file import read_config_file
-
-    return read_config_file(path)
+    return read_config_file(path, TrainerConfig)
 
 
-# config.yml files written before the configs moved beside their classes name them here: PyYAML resolves
-# ``kc_splatfacto.engine.config.TrainerConfig`` by attribute lookup, which this forwards (lazily: no import circle).
-_MOVED = {
-    "TrainerConfig": "kc_splatfacto.engine.trainer",
-    "PipelineConfig": "kc_splatfacto.engine.pipeline",
-    "DataManagerConfig": "kc_splatfacto.engine.datamanager",
-}
-
-
-def __getattr__(name: str) -> Any:
-    if name in _MOVED:
-        return getattr(importlib.import_module(_MOVED[name]), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__all__ = [
+    "DataManagerConfig",
+    "LoggingConfig",
+    "MachineConfig",
+    "PipelineConfig",
+    "TrainerConfig",
+    "ViewerConfig",
+    "load_config",
+    "save_config",
+]

@@ -1,4 +1,9 @@
-"""Reading ``config.yml`` back without running code from it.
+"""A run's ``config.yml``: written by :func:`save_config`, read back by :func:`read_config_file` without running code
+from it.
+
+The reader is told which config class the file must hold (``read_config_file(path, TrainerConfig)``): it imports no
+config class of its own, so it sits below the trainer that writes and reads these files
+(:func:`kc_splatfacto.engine.config.load_config` is the ``TrainerConfig`` reading).
 
 ``config.yml`` is PyYAML's object dump of the run's :class:`~kc_splatfacto.engine.trainer.TrainerConfig`. Reading it
 with ``yaml.Loader`` would import any module and call any function a ``!!python/...`` tag names: a config file someone
@@ -22,12 +27,21 @@ import difflib
 import importlib
 import pathlib
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import yaml
 
+from kc_splatfacto.atomic import atomic_write_text
 from kc_splatfacto.engine.validation import ConfigValueError, validate_config
 from kc_splatfacto.errors import ConfigFileError, ConfigFileNotFoundError
+from kc_splatfacto.registry import (
+    DataParserSpecification,
+    MethodSpecification,
+    discover_dataparsers,
+    discover_methods,
+)
+
+ConfigT = TypeVar("ConfigT")
 
 PROJECT_PACKAGE = "kc_splatfacto"
 PATH_CLASSES = ("PosixPath", "WindowsPath", "PurePosixPath", "PureWindowsPath", "Path")
@@ -48,8 +62,6 @@ def _where(loader: ConfigLoader, node: yaml.Node) -> str:
 
 def _registered_packages() -> set[str]:
     """Top-level packages of every registered method's and dataparser's config dataclasses (plugins included)."""
-    from kc_splatfacto.registry import discover_dataparsers, discover_methods
-
     roots: set[str] = set()
 
     def walk(value: Any, depth: int = 0) -> None:
@@ -59,7 +71,9 @@ def _registered_packages() -> set[str]:
         for f in dataclasses.fields(value):
             walk(getattr(value, f.name, None), depth + 1)
 
-    for spec in [*discover_methods().values(), *discover_dataparsers().values()]:
+    specs: list[MethodSpecification | DataParserSpecification] = [*discover_methods().values(),
+                                                                  *discover_dataparsers().values()]
+    for spec in specs:
         walk(spec.config)
     return roots
 
@@ -143,10 +157,15 @@ def load_yaml(text: str, source: str = "<config>") -> Any:
         raise ConfigFileError(f"{source} is not valid YAML{where}: pass the config.yml a run wrote") from exc
 
 
-def read_config_file(path: Path | str) -> Any:
-    """The :class:`~kc_splatfacto.engine.trainer.TrainerConfig` stored in ``path`` (a run's ``config.yml``)."""
-    from kc_splatfacto.engine.trainer import TrainerConfig
+def save_config(config: Any, path: Path) -> None:
+    """Write a run's full config (a ``TrainerConfig``) as YAML (PyYAML's object dump, as nerfstudio writes it),
+    atomically."""
+    atomic_write_text(path, yaml.dump(config, Dumper=yaml.Dumper, sort_keys=False))
 
+
+def read_config_file(path: Path | str, config_type: type[ConfigT]) -> ConfigT:
+    """The ``config_type`` instance stored in ``path`` (a run's ``config.yml`` holds a ``TrainerConfig``), its fields'
+    types and ranges checked; a :class:`ConfigFileError` naming the file when it holds anything else."""
     path = Path(path)
     if not path.is_file():
         raise ConfigFileNotFoundError(f"config file {path} not found: pass the config.yml of a run folder")
@@ -155,9 +174,9 @@ def read_config_file(path: Path | str) -> Any:
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigFileError(f"config file {path} cannot be read ({exc})") from exc
     config = load_yaml(text, str(path))
-    if not isinstance(config, TrainerConfig):
+    if not isinstance(config, config_type):
         raise ConfigFileError(
-            f"{path} does not hold a kc-splatfacto TrainerConfig (found {type(config).__name__}): pass the "
+            f"{path} does not hold a kc-splatfacto {config_type.__name__} (found {type(config).__name__}): pass the "
             "config.yml of a run folder"
         )
     try:

@@ -13,33 +13,34 @@ from typing import Any, Literal
 import torch
 import tyro
 
-from kc_splatfacto.data.base import DataParserError, write_dataparser_transforms
+from kc_splatfacto.data.base import DataParserConfig, DataParserError, write_dataparser_transforms
 from kc_splatfacto.data.dataset import ImageDataset
+from kc_splatfacto.data.detect import AutoDataParserConfig
+from kc_splatfacto.registry import discover_dataparsers
+
+#: the ``dataparser`` field's annotation: any dataparser config until a command line installs one subcommand per
+#: registered dataparser (:func:`install_dataparser_subcommands`), so importing this module discovers nothing (a broken
+#: third-party plugin then fails the command that lists the dataparsers, not every import of the engine)
+DataParserUnion: Any = DataParserConfig
 
 
 def dataparser_subcommands() -> Any:
-    """The ``dataparser`` field's type: one tyro subcommand per registered dataparser, plus ``auto`` (detect the
-    format from ``--data``), without the ``pipeline.datamanager.dataparser`` prefix (nerfstudio's
+    """The ``dataparser`` field's type on a command line: one tyro subcommand per registered dataparser, plus ``auto``
+    (detect the format from ``--data``), without the ``pipeline.datamanager.dataparser`` prefix (nerfstudio's
     ``AnnotatedDataParserUnion``): ``kc-train kc-splatfacto --data SCENE colmap --downscale-factor 4``."""
-    from kc_splatfacto.data.detect import AutoDataParserConfig
-    from kc_splatfacto.registry import discover_dataparsers
-
     specs = discover_dataparsers()
     defaults = {"auto": AutoDataParserConfig(), **{name: spec.config for name, spec in specs.items()}}
     descriptions = {"auto": "detect the format from --data (the default)",
                     **{name: spec.description for name, spec in specs.items()}}
-    return tyro.conf.OmitSubcommandPrefixes[
-        tyro.extras.subcommand_type_from_defaults(defaults, descriptions, prefix_names=False)
-    ]
+    union = tyro.extras.subcommand_type_from_defaults(defaults, descriptions, prefix_names=False)
+    return tyro.conf.OmitSubcommandPrefixes[union]  # type: ignore[misc,valid-type]  # a type built at run time
 
 
-DataParserUnion = dataparser_subcommands()
-
-
-def _auto_dataparser() -> Any:
-    from kc_splatfacto.data.detect import AutoDataParserConfig
-
-    return AutoDataParserConfig()
+def install_dataparser_subcommands() -> None:
+    """Make the ``dataparser`` field's annotation the registered dataparsers' subcommands (discovered now): what a
+    command line does before tyro reads ``DataManagerConfig``'s fields."""
+    global DataParserUnion
+    DataParserUnion = dataparser_subcommands()
 
 
 @dataclass
@@ -48,42 +49,47 @@ class DataManagerConfig:
 
     data: Path | None = None
     """scene folder, or 'demo' for the generated demo scene (given to the dataparser)"""
-    dataparser: DataParserUnion = field(default_factory=_auto_dataparser)
+    dataparser: DataParserUnion = field(default_factory=AutoDataParserConfig)
     """the dataparser config: a subcommand after the method's options (default: auto, detected from ``data``)"""
     eval_split: Literal["test", "val", "train"] = "test"
     """split evaluated during and after training"""
 
-    def resolve_dataparser(self) -> Any:
-        """The concrete dataparser config to use: ``data`` handed to the chosen one, ``auto`` detected.
+    def given_dataparser(self) -> DataParserConfig:
+        """The dataparser config with ``data`` handed to it (``auto`` not yet detected): a new config, this one is
+        left as the user wrote it."""
+        if self.data is None:
+            return self.dataparser
+        return dataclasses.replace(self.dataparser, data=Path(self.data))
+
+    def resolve_dataparser(self) -> DataParserConfig:
+        """The concrete dataparser config to use: :meth:`given_dataparser`, with ``auto`` detected from the scene.
 
         Returns a new config; this one is left as the user wrote it.
         """
-        from kc_splatfacto.data.detect import AutoDataParserConfig
-
-        parser_config = self.dataparser
+        parser_config = self.given_dataparser()
         if self.data is None and isinstance(parser_config, AutoDataParserConfig) and parser_config.data == Path("."):
             raise DataParserError("no scene given: pass --data PATH (a scene folder, or 'demo' for the demo scene)")
-        if self.data is not None:
-            parser_config = dataclasses.replace(parser_config, data=Path(self.data))
         if isinstance(parser_config, AutoDataParserConfig):
             parser_config = parser_config.resolve()
         return parser_config
 
-    def setup(self, seed: int = 42) -> DataManager:
-        return DataManager(self, seed=seed)
+    def setup(self, seed: int = 42, dataparser: DataParserConfig | None = None) -> DataManager:
+        """The :class:`DataManager`; ``dataparser`` is the resolved dataparser config when the caller has it (a
+        planned run: :func:`kc_splatfacto.engine.run_guard.plan_run`), else :meth:`resolve_dataparser`."""
+        return DataManager(self, seed=seed, dataparser=dataparser)
 
 
 class DataManager:
     """Loads the train and eval splits of one scene and hands out training batches.
 
     Attributes:
-        dataparser_config: the resolved dataparser config (what ``config.yml`` records to rebuild the run).
+        dataparser_config: the resolved dataparser config it loaded (what ``config.yml`` records to rebuild the run).
         train_dataset, eval_dataset: the two splits as :class:`ImageDataset`.
     """
 
-    def __init__(self, config: DataManagerConfig, seed: int = 42):
+    def __init__(self, config: DataManagerConfig, seed: int = 42, dataparser: DataParserConfig | None = None):
         self.config = config
-        self.dataparser_config = config.resolve_dataparser()
+        self.dataparser_config = dataparser if dataparser is not None else config.resolve_dataparser()
         self.dataparser = self.dataparser_config.setup()
         self.train_outputs = self.dataparser.get_dataparser_outputs(split="train")
         self.eval_outputs = self.dataparser.get_dataparser_outputs(split=config.eval_split)

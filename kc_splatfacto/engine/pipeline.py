@@ -1,9 +1,13 @@
-"""The pipeline (nerfstudio's ``VanillaPipeline``): owns the data manager and the model, and is the only thing the
-trainer, the evaluation and ``load_run`` talk to about them.
+"""The pipeline (nerfstudio's ``VanillaPipeline``): owns the data manager and the model.
 
-One training step's data path: ``datamanager.next_train()`` gives a batch (camera, uint8 image, index) ->
-``model.get_outputs(camera)`` renders it -> ``model.get_loss_dict(outputs, batch)`` compares render and ground truth.
-The optimizers and schedules belong to the trainer (they are training state, not the scene's).
+Through the pipeline the trainer takes a step's losses (:meth:`Pipeline.get_train_loss_dict`: ``datamanager.next_train()``
+gives a batch (camera, uint8 image, index) -> ``model.get_outputs(camera)`` renders it -> ``model.get_loss_dict(outputs,
+batch)`` compares render and ground truth), its logged metrics, the evaluation of a split and the checkpointed state
+(Gaussians, density-control statistics, image order). Beside it the trainer uses ``pipeline.model`` directly for what
+is training state rather than the scene's: the parameters its optimizers step, density control after the step
+(``step_post_backward``) and the removal of non-finite Gaussians; and ``pipeline.datamanager`` for the checks before
+the first step and ``dataparser_transforms.json``. ``load_run`` (kc-eval, kc-render, kc-export, kc-viewer) builds the
+same pipeline and uses its model and datasets.
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ from typing import Any, Callable, Sequence
 
 import torch
 
+from kc_splatfacto.data.base import DataParserConfig
 from kc_splatfacto.engine.datamanager import DataManager, DataManagerConfig
 from kc_splatfacto.engine.evaluation import evaluate_split
 from kc_splatfacto.model.splatfacto import SplatfactoModel, SplatfactoModelConfig
@@ -25,8 +30,9 @@ class PipelineConfig:
     datamanager: DataManagerConfig = field(default_factory=DataManagerConfig)
     model: SplatfactoModelConfig = field(default_factory=SplatfactoModelConfig)
 
-    def setup(self, *, device: torch.device | str = "cpu", seed: int = 42) -> Pipeline:
-        return Pipeline(self, device=device, seed=seed)
+    def setup(self, *, device: torch.device | str = "cpu", seed: int = 42,
+              dataparser: DataParserConfig | None = None) -> Pipeline:
+        return Pipeline(self, device=device, seed=seed, dataparser=dataparser)
 
 
 class Pipeline:
@@ -36,11 +42,13 @@ class Pipeline:
         config: the pipeline config (left unchanged; the resolved dataparser is ``datamanager.dataparser_config``).
         device: where the model lives.
         seed: seed of the training-image order.
+        dataparser: the run's resolved dataparser config (see :meth:`DataManagerConfig.setup`).
     """
 
-    def __init__(self, config: PipelineConfig, *, device: torch.device | str = "cpu", seed: int = 42):
+    def __init__(self, config: PipelineConfig, *, device: torch.device | str = "cpu", seed: int = 42,
+                 dataparser: DataParserConfig | None = None):
         self.config = config
-        self.datamanager: DataManager = config.datamanager.setup(seed=seed)
+        self.datamanager: DataManager = config.datamanager.setup(seed=seed, dataparser=dataparser)
         train_outputs = self.datamanager.train_outputs
         self.model: SplatfactoModel = config.model.setup(
             scene_scale=float(train_outputs.scene_scale),
@@ -69,7 +77,9 @@ class Pipeline:
         outputs = self.model.get_outputs(batch["camera"])
         if lap is not None:
             lap("render")
-        if not bool(torch.isfinite(outputs["rgb"]).all()):
+        rgb = outputs["rgb"]
+        assert rgb is not None  # get_outputs always renders colours
+        if not bool(torch.isfinite(rgb).all()):
             return outputs, None, batch
         loss_dict = self.model.get_loss_dict(outputs, batch)
         if lap is not None:

@@ -13,6 +13,10 @@
   checkpoint with the new settings in a new run folder;
 - a checkpoint that does not fit the config (another method or SH degree: ``checkpoints.check_checkpoint_fits``).
 
+:func:`plan_run` also resolves the run's dataparser, once (``auto`` detected from the scene, the scene path handed to
+it): :attr:`RunPlan.dataparser` is what the data manager loads, what the resume checks compare and what ``config.yml``
+records (:func:`recorded_dataparser`), so the scene path has one holder from then on: that config's ``data``.
+
 A resume of the same run also removes checkpoint temp files a hard kill left behind and drops ``metrics.jsonl``
 records written after the checkpoint (they will be written again), so the log has no duplicate or backwards steps.
 """
@@ -25,9 +29,12 @@ import os
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from kc_splatfacto.atomic import atomic_write_text
+from kc_splatfacto.data.base import DataParserConfig
+from kc_splatfacto.data.demo import DemoDataParserConfig
+from kc_splatfacto.data.detect import DEMO_NAME, AutoDataParserConfig
 from kc_splatfacto.engine.checkpoints import (
     CHECKPOINT_DIR,
     check_checkpoint_fits,
@@ -35,8 +42,15 @@ from kc_splatfacto.engine.checkpoints import (
     load_checkpoint,
     remove_orphan_temp_files,
 )
+from kc_splatfacto.engine.config_file import read_config_file
+from kc_splatfacto.engine.datamanager import DataManager
 from kc_splatfacto.engine.validation import validate_config
 from kc_splatfacto.errors import ResumeError, UserError
+from kc_splatfacto.metrics import SSIM_WINDOW
+
+if TYPE_CHECKING:  # annotations only: the trainer imports this module
+    from kc_splatfacto.engine.trainer import TrainerConfig
+    from kc_splatfacto.model.splatfacto import SplatfactoModelConfig
 
 OVERRIDE_FLAG = "--resume-from-other-run True"
 
@@ -46,19 +60,21 @@ class RunPlan:
     """Where a run writes and what it resumes from.
 
     Attributes:
+        dataparser: the run's resolved dataparser config (the scene it trains on, and how it is read).
         run_dir: the folder to continue (a resume of the same run), or None for a new run folder.
         checkpoint: the loaded checkpoint payload to restore, or None.
         checkpoint_path: its file, or None.
         trimmed_records: metrics.jsonl records dropped because they were written after the checkpoint.
     """
 
+    dataparser: DataParserConfig
     run_dir: Path | None = None
     checkpoint: dict[str, Any] | None = None
     checkpoint_path: Path | None = None
     trimmed_records: int = 0
 
 
-def check_settings(config: Any) -> None:
+def check_settings(config: TrainerConfig) -> None:
     """Settings that are wrong whatever the scene (every field's type and range, engine/validation.py): refused
     before anything is loaded or written."""
     iterations = config.max_num_iterations
@@ -82,47 +98,41 @@ def check_writable_folder(folder: Path, what: str) -> None:
         ) from exc
 
 
-def _dataparser(config: Any) -> Any:
-    """The dataparser config a config uses, resolved from the scene when it is ``auto`` (or not given)."""
+def comparable_dataparser(config: TrainerConfig) -> DataParserConfig:
+    """The dataparser config ``config`` trains with, for comparing two runs: resolved (``auto`` detected), or as given
+    when its scene cannot be read (its ``data`` handed over; setup says what is wrong with the scene)."""
     datamanager = config.pipeline.datamanager
-    parser = datamanager.dataparser
-    if parser is None or type(parser).__name__ == "AutoDataParserConfig":
-        try:
-            return datamanager.resolve_dataparser()
-        except (ValueError, OSError):  # no or no readable scene: compared as given (setup says what is wrong)
-            return parser
-    return parser
+    try:
+        return datamanager.resolve_dataparser()
+    except (ValueError, OSError):
+        return datamanager.given_dataparser()
 
 
-def scene_of(config: Any, parser: Any = None) -> str | None:
-    """The scene a config trains on, as an absolute path string ("demo" for the generated scene); ``parser`` is
-    :func:`_dataparser` of the config when the caller has it already (resolving ``auto`` looks at the folder)."""
-    datamanager = config.pipeline.datamanager
-    data = datamanager.data
-    if data is None:
-        data = getattr(datamanager.dataparser, "data", None)
-    if data is None:
-        return None
+def scene_of(parser: DataParserConfig | None) -> str | None:
+    """The scene a dataparser config reads, as an absolute path string ("demo" for the generated scene)."""
     if parser is None:
-        parser = _dataparser(config)
-    if str(data) == "demo" and type(parser).__name__.startswith(("Demo", "Auto", "NoneType")):
-        return "demo"
-    return str(Path(data).expanduser().resolve())  # resolved: a scene reached through a symlink is the same scene
+        return None
+    if str(parser.data) == DEMO_NAME and isinstance(parser, (DemoDataParserConfig, AutoDataParserConfig)):
+        return DEMO_NAME
+    return str(Path(parser.data).expanduser().resolve())  # resolved: a scene reached through a symlink is the same
 
 
-def differences(stored: Any, current: Any, parser_settings: bool = False) -> list[str]:
+def differences(stored: TrainerConfig, current: TrainerConfig, parser_settings: bool = False,
+                stored_parser: DataParserConfig | None = None,
+                current_parser: DataParserConfig | None = None) -> list[str]:
     """What makes ``current`` another run than ``stored``: method, scene, dataparser; with ``parser_settings`` also
-    the dataparser's settings (e.g. its downscale factor; the scene path is compared as the scene)."""
+    the dataparser's settings (e.g. its downscale factor; the scene path is compared as the scene). The two
+    dataparser configs are :func:`comparable_dataparser` of each config unless the caller has them already."""
     found = []
     if stored.method_name != current.method_name:
         found.append(f"method {stored.method_name} vs {current.method_name}")
-    stored_parser, current_parser = _dataparser(stored), _dataparser(current)  # each resolved once
-    stored_scene, current_scene = scene_of(stored, stored_parser), scene_of(current, current_parser)
+    stored_parser = stored_parser if stored_parser is not None else comparable_dataparser(stored)
+    current_parser = current_parser if current_parser is not None else comparable_dataparser(current)
+    stored_scene, current_scene = scene_of(stored_parser), scene_of(current_parser)
     if current_scene is not None and stored_scene != current_scene:
         found.append(f"scene {stored_scene} vs {current_scene}")
-    stored_name, current_name = type(stored_parser).__name__, type(current_parser).__name__
-    if stored_name != current_name:
-        found.append(f"dataparser {stored_name} vs {current_name}")
+    if type(stored_parser) is not type(current_parser):
+        found.append(f"dataparser {type(stored_parser).__name__} vs {type(current_parser).__name__}")
     elif parser_settings and dataclasses.is_dataclass(stored_parser) and dataclasses.is_dataclass(current_parser):
         stored_fields, current_fields = dataclasses.asdict(stored_parser), dataclasses.asdict(current_parser)
         changed = [f"{k} {stored_fields[k]} vs {v}" for k, v in current_fields.items()
@@ -162,10 +172,12 @@ def _same(a: Any, b: Any) -> bool:
     return a == b
 
 
-def setting_differences(stored: Any, current: Any) -> list[str]:
+def setting_differences(stored: TrainerConfig, current: TrainerConfig,
+                        stored_parser: DataParserConfig | None = None,
+                        current_parser: DataParserConfig | None = None) -> list[str]:
     """The settings (dotted names, stored vs current) in which ``current`` would train differently from ``stored``:
     every field but :data:`RESUMABLE_FIELDS`, and the resolved dataparser's settings (its scene is compared by
-    :func:`differences`)."""
+    :func:`differences`; the dataparser configs as there)."""
     found = []
     stored_leaves, current_leaves = _leaves(stored), _leaves(current)
     for name in sorted(set(stored_leaves) | set(current_leaves)):
@@ -174,7 +186,8 @@ def setting_differences(stored: Any, current: Any) -> list[str]:
         a, b = stored_leaves.get(name, "(absent)"), current_leaves.get(name, "(absent)")
         if not _same(a, b):
             found.append(f"{name} {a!r} vs {b!r}")
-    stored_parser, current_parser = _dataparser(stored), _dataparser(current)
+    stored_parser = stored_parser if stored_parser is not None else comparable_dataparser(stored)
+    current_parser = current_parser if current_parser is not None else comparable_dataparser(current)
     if type(stored_parser) is type(current_parser) and dataclasses.is_dataclass(stored_parser):
         a_fields, b_fields = _leaves(stored_parser), _leaves(current_parser)
         for name in sorted(set(a_fields) | set(b_fields)):
@@ -212,11 +225,14 @@ def trim_metrics(path: Path, step: int) -> int:
     return dropped
 
 
-def plan_run(config: Any, map_location: Any = "cpu") -> RunPlan:
-    """The checks of this module; returns where the run writes and the checkpoint it resumes from."""
+def plan_run(config: TrainerConfig, map_location: Any = "cpu") -> RunPlan:
+    """The checks of this module; returns the run's resolved dataparser, where the run writes and the checkpoint it
+    resumes from. A scene that cannot be read (none given, unknown format) is refused here, before any checkpoint
+    loads."""
     check_settings(config)
+    dataparser = config.pipeline.datamanager.resolve_dataparser()
     if config.load_dir is None:
-        return RunPlan()
+        return RunPlan(dataparser=dataparser)
     path = find_checkpoint(config.load_dir, config.load_step)
     checkpoint = load_checkpoint(path, map_location=map_location)
     step = int(checkpoint["step"])
@@ -231,15 +247,14 @@ def plan_run(config: Any, map_location: Any = "cpu") -> RunPlan:
     if path.parent.name != CHECKPOINT_DIR or not stored_path.is_file():
         problems = [f"{path.parent} is not the nerfstudio_models folder of a run with a config.yml"]
     else:
-        from kc_splatfacto.engine.config_file import read_config_file
-
-        stored = read_config_file(stored_path)
-        problems = differences(stored, config)
+        stored = read_config_file(stored_path, type(config))
+        stored_parser = comparable_dataparser(stored)
+        problems = differences(stored, config, stored_parser=stored_parser, current_parser=dataparser)
         if not problems:
-            changed = setting_differences(stored, config)
-            if changed and getattr(config, "resume_from_other_run", False):
+            changed = setting_differences(stored, config, stored_parser, dataparser)
+            if changed and config.resume_from_other_run:
                 check_checkpoint_fits(checkpoint, config, path, same_method=False)
-                return RunPlan(run_dir=None, checkpoint=checkpoint, checkpoint_path=path)
+                return RunPlan(dataparser=dataparser, checkpoint=checkpoint, checkpoint_path=path)
             if changed:
                 raise ResumeError(
                     f"--load-dir {config.load_dir}: this command would train that run on with other settings than "
@@ -248,26 +263,25 @@ def plan_run(config: Any, map_location: Any = "cpu") -> RunPlan:
                     "from its checkpoint with these settings in a new run folder"
                 )
     if problems:
-        if not getattr(config, "resume_from_other_run", False):
+        if not config.resume_from_other_run:
             raise ResumeError(
                 f"--load-dir {config.load_dir} is another run ({'; '.join(problems)}): resuming there would "
                 f"overwrite its files. Pass {OVERRIDE_FLAG} to start a new run folder from that checkpoint "
                 "(the other run is left untouched)"
             )
         check_checkpoint_fits(checkpoint, config, path, same_method=False)
-        return RunPlan(run_dir=None, checkpoint=checkpoint, checkpoint_path=path)
+        return RunPlan(dataparser=dataparser, checkpoint=checkpoint, checkpoint_path=path)
     check_checkpoint_fits(checkpoint, config, path)  # the run's config.yml and its checkpoint must agree
     check_writable_folder(run_dir, "the run folder")
     remove_orphan_temp_files(run_dir / CHECKPOINT_DIR)
     trimmed = trim_metrics(run_dir / "metrics.jsonl", step)
-    return RunPlan(run_dir=run_dir, checkpoint=checkpoint, checkpoint_path=path, trimmed_records=trimmed)
+    return RunPlan(dataparser=dataparser, run_dir=run_dir, checkpoint=checkpoint, checkpoint_path=path,
+                   trimmed_records=trimmed)
 
 
-def check_training_image_sizes(datamanager: Any, model_config: Any) -> None:
+def check_training_image_sizes(datamanager: DataManager, model_config: SplatfactoModelConfig) -> None:
     """Every training image must stay large enough for SSIM's window at the coarsest training resolution
     (1/2^num_downscales of the parsed size): refused before the first step, naming both settings that shrink it."""
-    from kc_splatfacto.metrics import SSIM_WINDOW
-
     need = SSIM_WINDOW // 2 + 1
     cameras = datamanager.train_dataset.cameras
     divisor = 2 ** int(model_config.num_downscales)
@@ -276,7 +290,7 @@ def check_training_image_sizes(datamanager: Any, model_config: Any) -> None:
     width, height = sizes[index]
     if min(width // divisor, height // divisor) >= need:
         return
-    factor = getattr(datamanager.dataparser_config, "downscale_factor", 1)
+    factor = datamanager.dataparser_config.downscale_factor
     name = datamanager.train_dataset.image_filenames[index]
     raise UserError(
         f"training image {name} is {width}x{height} after the dataparser's downscale_factor {factor}, and "
@@ -286,21 +300,22 @@ def check_training_image_sizes(datamanager: Any, model_config: Any) -> None:
     )
 
 
-def store_absolute_scene_path(config: Any) -> None:
-    """Make the scene paths saved in ``config.yml`` absolute, so kc-eval / kc-render work from any folder."""
-    datamanager = config.pipeline.datamanager
-    for holder in (datamanager, datamanager.dataparser):
-        for name in ("data", "cache_dir"):
-            value = getattr(holder, name, None)
-            if isinstance(value, (str, os.PathLike)) and str(value) != "demo" and Path(value).exists():
-                setattr(holder, name, Path(value).expanduser().absolute())
+def recorded_dataparser(parser: DataParserConfig) -> DataParserConfig:
+    """The run's dataparser config as ``config.yml`` records it: a copy with its scene and cache paths absolute (when
+    they exist), so kc-eval / kc-render work from any folder."""
+    absolute: dict[str, Any] = {}
+    for name in ("data", "cache_dir"):
+        value = getattr(parser, name, None)
+        if isinstance(value, (str, os.PathLike)) and str(value) != DEMO_NAME and Path(value).exists():
+            absolute[name] = Path(value).expanduser().absolute()
+    return dataclasses.replace(parser, **absolute)
 
 
-def announce_seed_points(datamanager: Any, model_config: Any) -> str | None:
+def announce_seed_points(datamanager: DataManager, model_config: SplatfactoModelConfig) -> str | None:
     """One line when the scene has no seed points and the model falls back to random Gaussians (else None)."""
-    if getattr(model_config, "random_init", False) or datamanager.seed_points() is not None:
+    if model_config.random_init or datamanager.seed_points() is not None:
         return None
-    scene = getattr(datamanager.dataparser_config, "data", None)
+    scene = datamanager.dataparser_config.data
     line = (
         f"no seed points in scene {scene}: starting from {model_config.num_random:,} random Gaussians "
         f"(--pipeline.model.num-random sets the count)"
@@ -315,10 +330,12 @@ __all__ = [
     "check_settings",
     "check_training_image_sizes",
     "check_writable_folder",
+    "comparable_dataparser",
     "differences",
-    "setting_differences",
     "plan_run",
-    "store_absolute_scene_path",
+    "recorded_dataparser",
+    "scene_of",
+    "setting_differences",
     "trim_metrics",
 ]
 

@@ -4,14 +4,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import torch
 
+from kc_splatfacto.data.base import DataParserConfig
+from kc_splatfacto.data.dataset import ImageDataset
+from kc_splatfacto.data.detect import DEMO_NAME
 from kc_splatfacto.engine.checkpoints import (
     CHECKPOINT_DIR,
-    CHECKPOINT_PATTERN,
     check_checkpoint_fits,
+    checkpoint_step,
     find_checkpoint,
     load_checkpoint,
 )
@@ -19,6 +21,7 @@ from kc_splatfacto.engine.config import load_config
 from kc_splatfacto.engine.pipeline import Pipeline
 from kc_splatfacto.engine.trainer import TrainerConfig
 from kc_splatfacto.errors import UserError
+from kc_splatfacto.model.splatfacto import SplatfactoModel
 
 
 @dataclass
@@ -37,20 +40,20 @@ class LoadedRun:
 
     config: TrainerConfig
     pipeline: Pipeline
-    model: Any
+    model: SplatfactoModel
     step: int
     run_dir: Path
-    train_dataset: Any
-    test_dataset: Any
+    train_dataset: ImageDataset
+    test_dataset: ImageDataset
     checkpoint_path: Path
 
 
-def check_stored_scene(config: TrainerConfig, config_path: Path) -> None:
+def check_stored_scene(parser: DataParserConfig, config_path: Path) -> None:
     """A scene path stored relative (runs written before paths were stored absolute) that does not resolve from here
-    is a :class:`UserError` saying so, rather than a "check --data" message about a flag kc-eval does not have."""
-    parser = config.pipeline.datamanager.dataparser
-    data = getattr(parser, "data", None) if parser is not None else config.pipeline.datamanager.data
-    if data is None or str(data) == "demo" or Path(data).exists():
+    is a :class:`UserError` saying so, rather than a "check --data" message about a flag kc-eval does not have.
+    ``parser``: the stored dataparser config with the stored scene handed to it."""
+    data = parser.data
+    if str(data) == DEMO_NAME or Path(data).exists():
         return
     if Path(data).is_absolute():
         raise UserError(
@@ -71,8 +74,10 @@ def load_run(config_path: Path | str, step: int | None = None, device: str | tor
     config = load_config(config_path)
     run_dir = config_path.parent
     checkpoint_path = find_checkpoint(run_dir / CHECKPOINT_DIR, step)
-    check_stored_scene(config, config_path)
-    pipeline = config.pipeline.setup(device=device, seed=config.machine.seed)  # as the trainer builds it
+    datamanager_config = config.pipeline.datamanager
+    check_stored_scene(datamanager_config.given_dataparser(), config_path)
+    dataparser = datamanager_config.resolve_dataparser()  # recorded resolved: a copy with the stored scene, no detection
+    pipeline = config.pipeline.setup(device=device, seed=config.machine.seed, dataparser=dataparser)  # as in training
     checkpoint = load_checkpoint(checkpoint_path, map_location=device)
     check_checkpoint_fits(checkpoint, config, checkpoint_path)
     pipeline.load_state_dict({"model": checkpoint["model"]}, step=int(checkpoint["step"]))
@@ -83,7 +88,7 @@ def load_run(config_path: Path | str, step: int | None = None, device: str | tor
         config=config,
         pipeline=pipeline,
         model=model,
-        step=int(CHECKPOINT_PATTERN.match(checkpoint_path.name).group(1)),
+        step=checkpoint_step(checkpoint_path),
         run_dir=run_dir,
         train_dataset=datamanager.train_dataset,
         test_dataset=datamanager.eval_dataset,

@@ -30,9 +30,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from kc_splatfacto.data.base import DataParserConfig
+from kc_splatfacto.engine.base_config import LoggingConfig, MachineConfig, ViewerConfig
 from kc_splatfacto.engine.callbacks import RecordSink, TrainingCallback, TrainingCallbackLocation, run_callbacks
 from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, RUN_IDENTITY_KEY, run_identity, save_checkpoint
-from kc_splatfacto.engine.config import LoggingConfig, MachineConfig, ViewerConfig, save_config
+from kc_splatfacto.engine.config_file import save_config
 from kc_splatfacto.engine.evaluation import FINAL_LPIPS_NETS
 from kc_splatfacto.engine.gradient_shares import gradient_shares
 from kc_splatfacto.engine.loggers import check_backends, logging_sinks
@@ -43,7 +45,7 @@ from kc_splatfacto.engine.run_guard import (
     announce_seed_points,
     check_training_image_sizes,
     plan_run,
-    store_absolute_scene_path,
+    recorded_dataparser,
 )
 from kc_splatfacto.engine.signals import install_stop_handlers, restore_handlers
 from kc_splatfacto.render.errors import NonFiniteInputError
@@ -75,7 +77,7 @@ class TrainerConfig:
     timestamp: str = "{timestamp}"
     """run folder component; '{timestamp}' is replaced by the start time"""
     data: Path | None = None
-    """alias for --pipeline.datamanager.data"""
+    """the scene: alias for --pipeline.datamanager.data (folded into it when the trainer is built)"""
     max_num_iterations: int = 30000
     """number of optimization steps"""
     steps_per_save: int = 2000
@@ -108,14 +110,12 @@ class TrainerConfig:
             self.pipeline.datamanager.data = self.data
             self.data = None
 
-    def base_dir(self) -> Path:
-        """``output_dir/experiment/method/timestamp``, with '{timestamp}' filled in."""
+    def base_dir(self, scene: Path) -> Path:
+        """``output_dir/experiment/method/timestamp``, with '{timestamp}' filled in; the experiment defaults to the
+        name of ``scene`` (the resolved dataparser's ``data``)."""
         experiment = self.experiment_name
         if experiment is None:
-            data = self.pipeline.datamanager.data
-            if data is None:  # a dataparser config given directly (kc-bench, tests): its scene folder
-                data = getattr(self.pipeline.datamanager.dataparser, "data", None)
-            experiment = (Path(str(data)).name if data is not None else "") or "unnamed"
+            experiment = Path(str(scene)).name or "unnamed"
         timestamp = self.timestamp
         if timestamp == "{timestamp}":
             timestamp = datetime.datetime.now().strftime(TIMESTAMP_FORMAT)
@@ -149,6 +149,7 @@ class Trainer:
         self.config = config
         self.device = config.machine.resolve_device()
         self.run_dir: Path | None = None
+        self.dataparser: DataParserConfig | None = None  # the resolved one, from plan_run
         self.pipeline: Pipeline | None = None
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
         self.schedulers: dict[str, Any] = {}
@@ -185,9 +186,10 @@ class Trainer:
     def setup(self) -> None:
         cfg = self.config
         plan = plan_run(cfg, map_location=self.device)  # bad settings and foreign resumes refused before data loads
+        self.dataparser = plan.dataparser
         check_backends(cfg.logging)
         cfg.machine.seed_everything()
-        self.pipeline = cfg.pipeline.setup(device=self.device, seed=cfg.machine.seed)
+        self.pipeline = cfg.pipeline.setup(device=self.device, seed=cfg.machine.seed, dataparser=plan.dataparser)
         check_training_image_sizes(self.datamanager, cfg.pipeline.model)
         announce_seed_points(self.datamanager, cfg.pipeline.model)
         self.model.train()
@@ -195,13 +197,13 @@ class Trainer:
         checkpoint = plan.checkpoint
         self.run_dir = plan.run_dir or self._new_run_dir()
         self.run_dir.mkdir(parents=True, exist_ok=True)
-        save_config(recorded_config(cfg, self.datamanager.dataparser_config), self.run_dir / "config.yml")
+        save_config(recorded_config(cfg, plan.dataparser), self.run_dir / "config.yml")
         self.datamanager.save_dataparser_transform(self.run_dir / "dataparser_transforms.json")
         if checkpoint is not None:
             self._restore(checkpoint)
 
     def _new_run_dir(self) -> Path:
-        base = self.config.base_dir()
+        base = self.config.base_dir(self.dataparser.data)
         candidate, n = base, 1
         while (candidate / CHECKPOINT_DIR).exists() or (candidate / "metrics.jsonl").exists():
             candidate = base.with_name(f"{base.name}_{n}")
@@ -398,7 +400,7 @@ class Trainer:
             self.setup()
         cfg = self.config
         # (no warnings.catch_warnings around the loop: mutating filters re-enables once-only warnings every step)
-        recorded = recorded_config(cfg, self.datamanager.dataparser_config) if cfg.logging.wandb else None
+        recorded = recorded_config(cfg, self.dataparser) if cfg.logging.wandb else None
         sinks = logging_sinks(cfg.logging, self.run_dir, self.pipeline, recorded)
         self.writer = MetricsWriter(self.run_dir / "metrics.jsonl", sinks=[*sinks, *self.record_sinks])
         self._t0 = time.perf_counter()
@@ -464,11 +466,13 @@ class Trainer:
         self.writer.write(record)
 
 
-def recorded_config(config: TrainerConfig, dataparser_config: Any) -> TrainerConfig:
+def recorded_config(config: TrainerConfig, dataparser_config: DataParserConfig) -> TrainerConfig:
     """What ``config.yml`` records: the user's config with the dataparser it resolved to (so the run can be rebuilt
-    whatever the detection would say later) and its scene paths made absolute (so kc-eval / kc-render work from any
-    folder), as a copy: the user's config object is left as given."""
+    whatever the detection would say later), its scene paths made absolute (so kc-eval / kc-render work from any
+    folder) and held there alone (``pipeline.datamanager.data`` and ``data`` left empty), as a copy: the user's config
+    object is left as given."""
     recorded = copy.deepcopy(config)
-    recorded.pipeline.datamanager.dataparser = copy.deepcopy(dataparser_config)
-    store_absolute_scene_path(recorded)
+    recorded.data = None
+    recorded.pipeline.datamanager.data = None
+    recorded.pipeline.datamanager.dataparser = recorded_dataparser(copy.deepcopy(dataparser_config))
     return recorded

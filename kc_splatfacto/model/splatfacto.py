@@ -17,10 +17,13 @@ import torch
 import torch.nn.functional as F
 
 from kc_splatfacto.data.outputs import Cameras
-from kc_splatfacto.losses.frequency import FrequencyLoss, FrequencyLossConfig
+from kc_splatfacto.losses.frequency import FrequencyLoss, FrequencyLossConfig, WaveletBands, mean_band_kurtosis
+from kc_splatfacto.losses.photometric import dssim, l1
+from kc_splatfacto.metrics import mean_ssim, psnr
 from kc_splatfacto.model import ops
 from kc_splatfacto.model.gaussians import init_gaussian_params
 from kc_splatfacto.model.strategy import DefaultStrategy, NoGaussiansLeftError
+from kc_splatfacto.render import SplitSH, rasterization
 from kc_splatfacto.render.constants import FAR_PLANE, NEAR_PLANE
 from kc_splatfacto.render.rasterization import RenderMode
 
@@ -367,8 +370,6 @@ class SplatfactoModel(torch.nn.Module):
             ``output_depth_during_training``), ``accumulation`` [H, W, 1], ``background`` [3].
             In training H, W are the size at the current training resolution.
         """
-        from kc_splatfacto.render import SplitSH, rasterization
-
         if len(camera) != 1:
             raise ValueError(f"get_outputs renders one camera at a time, got {len(camera)}")
         camera = rescale_cameras(camera.to(self.device), self.get_downscale_factor())
@@ -492,8 +493,6 @@ class SplatfactoModel(torch.nn.Module):
             batch: ``image`` [H, W, 3|4] (uint8 or float, full resolution), ``image_idx`` (int, the cache key) and
                 optionally ``mask`` [H, W, 1] (bool, True = use the pixel).
         """
-        from kc_splatfacto.losses.photometric import dssim, l1
-
         pred_img, gt_img, _ = self._masked_pair(outputs, batch)
         pred_bchw, gt_bchw = _bchw(pred_img), _bchw(gt_img)
         l1_loss = l1(pred_bchw, gt_bchw)
@@ -525,8 +524,6 @@ class SplatfactoModel(torch.nn.Module):
     ) -> dict[str, Any]:
         """``psnr`` and ``gaussian_count``; with ``with_kurtosis`` (logging steps only: two DWTs) also
         ``kurtosis_render`` / ``kurtosis_gt``: per detail band (finest level first, H V D), channel-averaged."""
-        from kc_splatfacto.metrics import psnr
-
         pred_img, gt_img, mask = self._masked_pair(outputs, batch)
         metrics: dict[str, Any] = {
             "psnr": float(psnr(_bchw(pred_img), _bchw(gt_img), mask=None if mask is None else _bchw(mask))),
@@ -542,8 +539,6 @@ class SplatfactoModel(torch.nn.Module):
     def get_image_metrics(self, outputs: dict[str, Any], batch: dict[str, Any]) -> tuple[dict[str, float], Any]:
         """Evaluation metrics of one view: ``psnr`` and ``ssim`` (mean of the SSIM map), both over the mask when the
         batch has one; also returns (pred, gt) as [1, 3, H, W] (masked) for further metrics (LPIPS)."""
-        from kc_splatfacto.metrics import mean_ssim, psnr
-
         pred_img, gt_img, mask = self._masked_pair(outputs, batch)
         pred_bchw, gt_bchw = _bchw(pred_img).float(), _bchw(gt_img)
         mask = None if mask is None else _bchw(mask)
@@ -562,8 +557,6 @@ class SplatfactoModel(torch.nn.Module):
 
         ``image`` is an [H, W, 3] image or the GT's cached WaveletBands (whose kurtosis is read, not recomputed).
         """
-        from kc_splatfacto.losses.frequency import WaveletBands, mean_band_kurtosis
-
         if not isinstance(image, WaveletBands):
             if self._kurtosis_probe is None:
                 # the loss itself, or (every weight zero) a module with the same DWT settings: either warns once per

@@ -26,8 +26,8 @@ import torch
 
 from kc_splatfacto.atomic import atomic_write_text
 from kc_splatfacto.data.outputs import Cameras
+from kc_splatfacto.engine.base_config import ViewerConfig
 from kc_splatfacto.engine.callbacks import RecordSink, TrainingCallback, TrainingCallbackLocation
-from kc_splatfacto.engine.config import ViewerConfig
 from kc_splatfacto.errors import UserError
 from kc_splatfacto.viewer.cameras import (
     camera_from_pose,

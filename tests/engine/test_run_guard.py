@@ -264,6 +264,80 @@ def test_real_config_round_trips_through_the_safe_loader(finished_run):
     assert load_config(finished_run / "config.yml") == yaml.unsafe_load(text)
 
 
+# ------------------------------------------------------------------------------------------------ the scene path
+
+REPO = Path(__file__).resolve().parents[2]
+COMMITTED_CONFIGS = sorted((REPO / "docs" / "results").rglob("config.yml"))
+#: where the classes were when earlier versions wrote config.yml (PyYAML names the class's module)
+EARLIER_CLASS_NAMES = {
+    "kc_splatfacto.engine.trainer.TrainerConfig": "kc_splatfacto.engine.config.TrainerConfig",
+    "kc_splatfacto.engine.pipeline.PipelineConfig": "kc_splatfacto.engine.config.PipelineConfig",
+    "kc_splatfacto.engine.datamanager.DataManagerConfig": "kc_splatfacto.engine.config.DataManagerConfig",
+    "kc_splatfacto.engine.base_config.MachineConfig": "kc_splatfacto.engine.config.MachineConfig",
+    "kc_splatfacto.engine.base_config.LoggingConfig": "kc_splatfacto.engine.config.LoggingConfig",
+}
+
+
+@pytest.mark.parametrize("path", COMMITTED_CONFIGS, ids=lambda p: str(p.relative_to(REPO / "docs" / "results")))
+def test_committed_config_files_load_with_their_scene(path):
+    """config.yml files earlier code wrote (the scene in three fields, classes named where they were) still load, and
+    the scene they name is the one their recorded dataparser holds (PyYAML's unsafe loader: the oracle)."""
+    import yaml
+
+    from kc_splatfacto.engine.run_guard import comparable_dataparser, scene_of
+
+    config = load_config(path)
+    raw = yaml.unsafe_load(path.read_text())  # the file's objects as written (fields added since are absent)
+    assert (config.method_name, config.max_num_iterations) == (raw.method_name, raw.max_num_iterations)
+    assert scene_of(comparable_dataparser(config)) == str(Path(raw.pipeline.datamanager.dataparser.data).resolve())
+
+
+def test_config_file_naming_classes_where_earlier_versions_had_them_loads(finished_run, tmp_path):
+    text = (finished_run / "config.yml").read_text()
+    for now, before in EARLIER_CLASS_NAMES.items():
+        assert f"!!python/object:{now}" in text
+        text = text.replace(f"!!python/object:{now}", f"!!python/object:{before}")
+    old = tmp_path / "config.yml"
+    old.write_text(text)
+    assert load_config(old) == load_config(finished_run / "config.yml")
+
+
+def test_a_run_records_its_scene_once_and_resolves_it_once(tmp_path, monkeypatch):
+    """The dataparser is resolved once, when the run is planned; the data manager loads that object, and config.yml
+    holds the scene in the recorded dataparser alone."""
+    from kc_splatfacto.engine.datamanager import DataManagerConfig
+
+    calls = []
+    resolve = DataManagerConfig.resolve_dataparser
+    monkeypatch.setattr(DataManagerConfig, "resolve_dataparser", lambda self: calls.append(1) or resolve(self))
+    config = tiny_demo_config("splatfacto", tmp_path, iterations=1)
+    config.pipeline.datamanager.data = "demo"
+    trainer = Trainer(config)
+    run_dir = trainer.train()
+    assert len(calls) == 1
+    assert trainer.datamanager.dataparser_config is trainer.dataparser
+    recorded = load_config(run_dir / "config.yml")
+    assert recorded.data is None and recorded.pipeline.datamanager.data is None
+    assert str(recorded.pipeline.datamanager.dataparser.data) == "demo"
+
+
+def test_resume_of_a_run_recorded_with_the_scene_in_every_field(finished_run, tmp_path):
+    """Earlier code recorded the scene in the data manager's field too: such a run is still the same run."""
+    from kc_splatfacto.engine.config import save_config
+    from kc_splatfacto.engine.run_guard import differences, setting_differences
+
+    stored = load_config(finished_run / "config.yml")
+    old_style = load_config(finished_run / "config.yml")
+    old_style.pipeline.datamanager.data = old_style.pipeline.datamanager.dataparser.data
+    save_config(old_style, tmp_path / "config.yml")
+    old_style = load_config(tmp_path / "config.yml")
+    assert differences(old_style, stored, parser_settings=True) == []
+    assert setting_differences(old_style, stored) == []
+    other = load_config(finished_run / "config.yml")
+    other.pipeline.datamanager.data = tmp_path  # another scene, given the way --data gives it
+    assert differences(old_style, other) == [f"scene demo vs {tmp_path.resolve()}"]
+
+
 # ------------------------------------------------------------------------------------------------ SIGTERM
 
 

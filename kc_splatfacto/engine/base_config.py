@@ -1,0 +1,96 @@
+"""The engine's configs that build nothing themselves (nerfstudio's ``configs/base_config.py``): where to run
+(:class:`MachineConfig`), what to log (:class:`LoggingConfig`; engine/loggers.py builds its backends) and how to watch
+(:class:`ViewerConfig`; the viewer package builds the viewer from it).
+
+Every config that builds something lives beside the class it builds and has ``setup()``:
+``trainer.TrainerConfig -> Trainer``, ``pipeline.PipelineConfig -> Pipeline``, ``datamanager.DataManagerConfig ->
+DataManager``, ``model.splatfacto.SplatfactoModelConfig -> SplatfactoModel``, ``optimizers.OptimizersConfig``. This
+module imports none of them: it is a leaf of the engine.
+"""
+
+from __future__ import annotations
+
+import random
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+
+def _gsplat_importable() -> bool:
+    try:
+        import gsplat  # noqa: F401
+    except Exception:  # ImportError, or a CUDA build failing at import
+        return False
+    return True
+
+
+@dataclass
+class MachineConfig:
+    """Where and how reproducibly to run."""
+
+    seed: int = 42
+    """seed of torch, numpy and python's random"""
+    device: str = "auto"
+    """'auto' (CUDA when available and gsplat imports, else CPU), 'cpu', 'cuda', 'cuda:1', ..."""
+
+    def resolve_device(self) -> torch.device:
+        if self.device == "auto":
+            # CUDA only pays with gsplat's kernels: the rasterization backend "auto" refuses CUDA tensors without
+            # gsplat (the compiled rasterizer is CPU-only), so without gsplat training stays on the CPU
+            return torch.device("cuda" if torch.cuda.is_available() and _gsplat_importable() else "cpu")
+        device = torch.device(self.device)
+        if device.type == "cuda" and not torch.cuda.is_available():
+            raise RuntimeError(f"--machine.device {self.device}: CUDA is not available here; use 'cpu' or 'auto'")
+        return device
+
+    def seed_everything(self) -> None:
+        random.seed(self.seed)
+        np.random.seed(self.seed)
+        torch.manual_seed(self.seed)
+
+
+@dataclass
+class LoggingConfig:
+    """What the trainer writes while it runs."""
+
+    steps_per_log: int = 10
+    """train records in metrics.jsonl (with per-band kurtosis) every this many steps"""
+    progress_bar: bool = True
+    """progress on stderr: a tqdm bar on a terminal, else a line every ``steps_per_progress_line`` steps"""
+    steps_per_progress_line: int = 100
+    """when stderr is not a terminal (a log file, CI): one progress line every this many steps"""
+    profile_phases: bool = False
+    """synchronize and time each phase of a step (render, losses, backward, optimizer, density control)"""
+    steps_per_gradient_shares: int = 100
+    """every this many steps a ``gradient_shares`` record: each loss term's image-gradient norm relative to the
+    photometric term's (engine/gradient_shares.py; ~60 ms on a 192x128 CPU render, excluded from train_s); 0 turns it off"""
+    tensorboard: bool = False
+    """also write tensorboard event files into the run folder (loss terms, PSNR/SSIM/LPIPS, Gaussian count, step
+    time, eval images); needs ``pip install 'kc-splatfacto[tensorboard]'``"""
+    wandb: bool = False
+    """also log to wandb, offline, into the run folder's wandb/ (``wandb sync`` uploads it later); needs
+    ``pip install 'kc-splatfacto[wandb]'``"""
+    wandb_project: str = "kc-splatfacto"
+    """the wandb project the offline run belongs to"""
+    eval_images: int = 1
+    """eval views whose render beside the ground truth tensorboard/wandb receive at each evaluation (0: none)"""
+
+
+@dataclass
+class ViewerConfig:
+    """The live viewer of ``kc-train --viewer True`` (viser, in the browser); ``kc-viewer`` reads the same fields."""
+
+    enabled: bool = False
+    """serve the scene in the browser while it trains (needs ``pip install 'kc-splatfacto[viewer]'``)"""
+    host: str = "127.0.0.1"
+    """address the viewer listens on ('0.0.0.0' for other machines)"""
+    port: int = 7007
+    """port of the viewer (nerfstudio's default); the next free one when taken"""
+    max_render_pixels: int = 160 * 120
+    """the largest render the viewer asks of the rasterizer while training (the browser scales it up)"""
+    render_share: float = 0.05
+    """at most this fraction of the wall-clock time goes into viewer renders while training (nerfstudio's
+    'train util' is 1 minus it)"""
+    quit_on_train_completion: bool = False
+    """exit when training ends instead of serving the finished scene until Ctrl-C"""
