@@ -21,6 +21,7 @@ from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, CHECKPOINT_PATTERN,
 from kc_splatfacto.engine.config import load_config
 from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.run_guard import differences
+from kc_splatfacto.engine.trainer import Trainer
 from kc_splatfacto.errors import UserError
 
 RESULT_FILES = ("config.yml", "metrics.jsonl", "dataparser_transforms.json")
@@ -129,8 +130,6 @@ def execute_run(spec: RunSpec, *, resume: bool, send_files: bool = False) -> dic
     files (:data:`RESULT_FILES`) as bytes, so a study on machines without a shared filesystem gets them back.
     A Ctrl-C (``KeyboardInterrupt``) is not a failure: it propagates.
     """
-    from kc_splatfacto.engine.trainer import Trainer
-
     start = time.perf_counter()
     result: dict[str, Any] = {"index": spec.index, "run_dir": str(spec.run_dir), "records": [], "error": None}
     try:

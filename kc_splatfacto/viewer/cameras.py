@@ -17,6 +17,7 @@ import torch
 
 from kc_splatfacto.analysis.camera_path import camera_entries, camera_path_dict, interpolate_camera_path
 from kc_splatfacto.data.outputs import Cameras
+from kc_splatfacto.render.constants import SH_C0
 from kc_splatfacto.render.projection import quat_to_rotmat, rotmat_to_quat
 
 
@@ -62,8 +63,6 @@ def world_up(cameras: Cameras) -> np.ndarray:
 def splat_arrays(model) -> dict[str, np.ndarray]:
     """What the PLY export holds, as viser's ``add_gaussian_splats`` takes it: ``centers`` [N, 3], ``covariances``
     [N, 3, 3] (R diag(s^2) R^T), ``rgbs`` [N, 3] (the view-independent colour), ``opacities`` [N, 1]."""
-    from kc_splatfacto.model.gaussians import SH_C0
-
     with torch.no_grad():
         rotations = quat_to_rotmat(model.quats.detach().double())
         scales = torch.exp(model.scales.detach().double())
