@@ -70,10 +70,11 @@ def check_own_methods_package() -> None:
     also have: the one imported must be the folder beside this package, never a namesake whose methods would be
     trained under this project's method names."""
     module = sys.modules.get(OWN_METHODS_PACKAGE)
-    if module is None or getattr(module, "__file__", None) is None:
+    module_file = getattr(module, "__file__", None)
+    if module_file is None:
         return
     ours = Path(__file__).resolve().parents[1] / OWN_METHODS_PACKAGE
-    found = Path(module.__file__).resolve().parent
+    found = Path(module_file).resolve().parent
     if found != ours:
         raise RegistryError(
             f"the '{OWN_METHODS_PACKAGE}' package imported from {found} is not kc-splatfacto's ({ours}): another "
