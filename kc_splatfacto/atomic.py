@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Callable
 
 
-def atomic_write(path: str | Path, write: Callable[[Path], None]) -> Path:
+def atomic_write(path: str | Path, write: Callable[[Path], object]) -> Path:
     """Call ``write(tmp_path)`` to fill a temp file beside ``path``, then rename it over ``path``.
 
     The folder is created. On any failure (including KeyboardInterrupt) the temp file is removed and ``path`` is left

@@ -180,6 +180,9 @@ def _unit_normalize(feat: torch.Tensor) -> torch.Tensor:
 class LPIPS(torch.nn.Module):
     """LPIPS v0.1 with ``net`` ('alex' or 'vgg'); weights are buffers (no gradients). ``forward(pred, gt) -> [B]``."""
 
+    shift: torch.Tensor
+    scale: torch.Tensor
+
     def __init__(self, net: str = "alex"):
         super().__init__()
         self.net = net

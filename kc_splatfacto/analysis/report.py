@@ -23,7 +23,7 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 
@@ -87,7 +87,7 @@ def eval_rows(records: Iterable[dict], scene: str, method: str, seed: int, run_d
     without the run's start-up (:func:`clock_offsets`)."""
     records = list(records)
     offset = clock_offsets(records)
-    rows = []
+    rows: list[dict[str, Any]] = []
     for record in records:
         if record.get("kind") != "eval":
             continue
@@ -275,8 +275,8 @@ def paired_curves(rows: Sequence[dict], baseline: str, metric: str = "psnr", tim
             high.append(interval[1])
             times = [index[(sc, method, se, step)].get(time_key) for sc, se in pairs]
             base_times = [index[(sc, baseline, se, step)].get(time_key) for sc, se in pairs]
-            time.append(float(np.mean(times)) if None not in times else float("nan"))
-            base_time.append(float(np.mean(base_times)) if None not in base_times else float("nan"))
+            time.append(_mean_or_nan(times))
+            base_time.append(_mean_or_nan(base_times))
         out.append({"method": method, "metric": metric, "steps": np.array(steps), "mean": np.array(mean),
                     "low": np.array(low), "high": np.array(high), "time": np.array(time),
                     "baseline_time": np.array(base_time), "pairs": pairs})
@@ -420,16 +420,21 @@ def markdown_table(
     return "\n".join(lines + notes) + "\n"
 
 
+def _mean_or_nan(values: Sequence[float | None]) -> float:
+    """The mean, or NaN where a value is missing (a run that logged no such clock)."""
+    return float("nan") if any(v is None for v in values) else float(np.mean(np.asarray(values, dtype=np.float64)))
+
+
 def mean_interval(values: Sequence[float], level: float = INTERVAL_LEVEL) -> tuple[float, float] | None:
     """Student-t interval on the mean of ``values`` (paired differences over seeds): mean -/+ t_{(1+level)/2, n-1}
     s / sqrt(n), s the sample std (ddof 1). None for fewer than two values."""
     from scipy.stats import t as student_t
 
-    values = np.asarray([v for v in values if v is not None], dtype=np.float64)
-    if values.size < 2:
+    array = np.asarray([v for v in values if v is not None], dtype=np.float64)
+    if array.size < 2:
         return None
-    half = float(student_t.ppf((1 + level) / 2, values.size - 1) * values.std(ddof=1) / np.sqrt(values.size))
-    return float(values.mean() - half), float(values.mean() + half)
+    half = float(student_t.ppf((1 + level) / 2, array.size - 1) * array.std(ddof=1) / np.sqrt(array.size))
+    return float(array.mean() - half), float(array.mean() + half)
 
 
 def paired_deltas(rows: Sequence[dict], baseline: str) -> list[dict]:

@@ -159,7 +159,7 @@ def plan_runs(args: argparse.Namespace, methods_available: dict, runs_dir: Path)
     else:
         steps_scale = float(args.steps_scale)
     downscale = scene_downscale_factors(args.data, args.downscale_factor)
-    specs = []
+    specs: list[RunSpec] = []
     for seed in args.seeds:
         for data in args.data:
             scene = Path(str(data)).name if str(data) != "demo" else "demo"
@@ -188,7 +188,7 @@ def set_threads(threads: int) -> None:
     import torch
 
     torch.set_num_threads(threads)
-    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
 
 
 def choose_runner(args: argparse.Namespace):
@@ -256,7 +256,9 @@ class Study:
             result = self.results.get(spec.index)
             final = next((r for r in reversed(result["records"]) if r.get("kind") == "eval"
                           and r.get("step") == spec.max_steps), None) if result else None
-            for view in (final or {}).get("per_image", []):
+            if final is None:
+                continue
+            for view in final.get("per_image", []):
                 views.append({"scene": spec.scene, "method": spec.method, "seed": spec.seed, "step": final["step"],
                               **view})
         return views

@@ -103,7 +103,7 @@ def describe(result: dict[str, Any], spec: RunSpec) -> str:
     """One line on a finished run: its status, time and final metrics, or its error and folder."""
     if result["status"] == "failed":
         return f"[kc-bench] FAILED {spec.name} (run folder {result['run_dir']}): {result['error']}"
-    final = next((r for r in reversed(result["records"]) if r.get("kind") == "eval"), {})
+    final: dict[str, Any] = next((r for r in reversed(result["records"]) if r.get("kind") == "eval"), {})
     return (f"[kc-bench] {spec.name}: {result['status']} in {result['wall_s']:.0f}s, final step {final.get('step')} "
             f"PSNR {final.get('psnr')} SSIM {final.get('ssim')} train_s {final.get('train_s')}")
 
@@ -220,7 +220,7 @@ class RayRunner:
             def count(self) -> int:
                 return len(self.started_runs)
 
-        actor = ProgressActor.options(num_cpus=0).remote()
+        actor = ProgressActor.options(num_cpus=0).remote()  # type: ignore[attr-defined]  # a ray.remote class
         task = ray.remote(_ray_execute).options(num_cpus=self.threads, num_gpus=self.gpus, max_retries=0)
         send_files = self.address is not None  # another machine may have run it
         by_ref = {task.remote(spec, resume, send_files, actor): spec for spec in specs}

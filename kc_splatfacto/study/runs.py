@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from kc_splatfacto.atomic import atomic_write_bytes, atomic_write_text
-from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, CHECKPOINT_PATTERN, list_checkpoints
+from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, checkpoint_step, list_checkpoints
 from kc_splatfacto.engine.config import load_config
 from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.run_guard import differences
@@ -93,7 +93,7 @@ def resume_point(run_dir: Path, config: Any) -> Path | None:
         if log.is_file():
             log.replace(run_dir / "metrics.interrupted.jsonl")
         return None
-    step = int(CHECKPOINT_PATTERN.match(checkpoints[-1].name).group(1))
+    step = checkpoint_step(checkpoints[-1])
     if log.is_file():
         kept = []
         for line in log.read_text().splitlines():
