@@ -26,13 +26,13 @@ install: $(VENV)/.installed
 test: install
 	$(PY) -m pytest -q tests
 
-# ruff and mypy, configured in pyproject.toml ([tool.ruff], [tool.mypy]), on the package; pinned so that a new
-# release's new rules do not fail an unchanged tree; installed into the venv on first use
+# ruff (package and tests) and mypy (package), configured in pyproject.toml ([tool.ruff], [tool.mypy]); pinned so
+# that a new release's new rules do not fail an unchanged tree; installed into the venv on first use
 LINT_TOOLS ?= ruff==0.17.6 mypy==2.4.1
 
 lint: install
 	$(PY) -m ruff --version >/dev/null 2>&1 && $(PY) -m mypy --version >/dev/null 2>&1 || $(PY) -m pip install -q $(LINT_TOOLS)
-	$(PY) -m ruff check kc_splatfacto method_configs
+	$(PY) -m ruff check kc_splatfacto method_configs tests
 	$(PY) -m mypy
 
 # kc-splatfacto on the generated 160x120 demo scene: Splatfacto's schedule compressed 10x (steps-scale 0.1) into

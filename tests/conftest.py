@@ -1,12 +1,11 @@
 """Shared test set-up: thread policy before torch loads, and the ../shared/data scenes."""
 
 import os
+from pathlib import Path
 
-import kc_splatfacto  # noqa: E402,F401  (sets OMP_WAIT_POLICY before torch loads)
+import pytest
 
-from pathlib import Path  # noqa: E402
-
-import pytest  # noqa: E402
+import kc_splatfacto  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads: the first import of torch is through it)
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("KC_SHARED_DATA", PROJECT_ROOT.parent / "shared" / "data"))

@@ -12,7 +12,7 @@ import json
 import shutil
 import struct
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -153,7 +153,7 @@ def camera_line(line):
 def write_float_tiff(values):
     def edit(root):
         images = root / "scene" / "images"
-        for i, path in enumerate(sorted(images.glob("*.png"))):
+        for path in sorted(images.glob("*.png")):
             image = cv2.imread(str(path)).astype(np.float32)
             path.unlink()
             cv2.imwrite(str(path.with_suffix(".tif")), values(image))

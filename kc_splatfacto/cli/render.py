@@ -115,7 +115,7 @@ def _write_h264(frames_rgb, path: Path, fps: float) -> tuple[int, int]:
     finally:
         if writer is not None:
             writer.close()
-    return size
+    return _written_size(size)
 
 
 def _write_mp4v(frames_rgb, path: Path, fps: float) -> tuple[int, int]:
@@ -125,13 +125,19 @@ def _write_mp4v(frames_rgb, path: Path, fps: float) -> tuple[int, int]:
             frame = even_size(frame)  # MPEG-4 part 2 is 4:2:0 as well (OpenCV would drop the odd row/column)
             if writer is None:
                 size = (frame.shape[1], frame.shape[0])
-                writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*MP4_FOURCC), float(fps), size)
+                writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*MP4_FOURCC), float(fps), size)
                 if not writer.isOpened():
                     raise RuntimeError(f"kc-render: OpenCV cannot open an '{MP4_FOURCC}' writer for {path}")
             writer.write(frame[..., ::-1].copy())  # OpenCV takes BGR
     finally:
         if writer is not None:
             writer.release()
+    return _written_size(size)
+
+
+def _written_size(size: tuple[int, int] | None) -> tuple[int, int]:
+    if size is None:  # write_video checks for a first frame before a writer starts
+        raise ValueError("kc-render: no frames to write")
     return size
 
 
@@ -211,7 +217,7 @@ def path_cameras(loaded, path_kind: str, num_frames: int):
         raise UserError(f"kc-render: the train split of {loaded.run_dir} is empty; no path through its views")
     if path_kind == "interpolate":
         return interpolate_camera_path(keys, num_frames)
-    means = loaded.model.means.detach().cpu().double().numpy() if hasattr(loaded.model, "means") else []
+    means = loaded.model.means.detach().cpu().double().numpy() if hasattr(loaded.model, "means") else np.zeros((0, 3))
     return spiral_camera_path(keys, means, num_frames)
 
 
@@ -278,7 +284,7 @@ def run_render(
         raise UserError(f"kc-render: the test split of {loaded.run_dir} is empty; nothing to render")
     result = {"output_dir": output_dir, "views": write_side_by_side(loaded.model, dataset, output_dir / "views")}
     if video:
-        if camera_path is not None:
+        if camera_path is not None and camera_path_filename is not None:
             cameras, name = camera_path.cameras, Path(camera_path_filename).stem
             fps = camera_path.fps if camera_path.fps is not None else fps
         else:

@@ -392,7 +392,7 @@ def _images_with_non_finite_poses(images_txt: Path) -> list[str]:
         if len(fields) < 10:
             continue
         try:
-            finite = np.isfinite([float(v) for v in fields[1:8]]).all()
+            finite = bool(np.isfinite([float(v) for v in fields[1:8]]).all())
         except ValueError:
             finite = False
         if not finite:
@@ -492,24 +492,26 @@ def pinhole_images(
     if config.downscale_factor > 1:  # before any image is undistorted or resized: nothing half-written
         pinhole_sizes = [undistorted_pinhole(c)[1][2:] if c.is_distorted else (c.width, c.height) for c in cameras]
         scale_intrinsics(np.zeros((len(cameras), 4)), np.asarray(pinhole_sizes).reshape(-1, 2), config.downscale_factor)
-    intrinsics, sizes, out_paths = [], [], []
+    intrinsic_rows: list[list[float]] = []
+    size_rows: list[tuple[int, int]] = []
+    out_paths = []
     for path, camera, images_dir in zip(paths, cameras, images_dirs):
         if camera.is_distorted:
             new_k, (_, _, w, h) = undistorted_pinhole(camera)
-            intrinsics.append([new_k[0, 0], new_k[1, 1], new_k[0, 2], new_k[1, 2]])
-            sizes.append((w, h))
+            intrinsic_rows.append([new_k[0, 0], new_k[1, 1], new_k[0, 2], new_k[1, 2]])
+            size_rows.append((w, h))
             undistorted, folder = undistorted_paths([path], [camera], images_dir, config.cache_dir)
             if folder not in metadata.setdefault("undistorted_dirs", []):
                 metadata["undistorted_dirs"].append(folder)
             path, images_dir = undistorted[0], folder
         else:
-            intrinsics.append([camera.fx, camera.fy, camera.cx, camera.cy])
-            sizes.append((camera.width, camera.height))
+            intrinsic_rows.append([camera.fx, camera.fy, camera.cx, camera.cy])
+            size_rows.append((camera.width, camera.height))
         if config.downscale_factor > 1:
             path = downscaled_paths([path], images_dir, config.downscale_factor, config.cache_dir)[0]
         out_paths.append(path)
-    intrinsics = np.asarray(intrinsics, np.float64).reshape(-1, 4)
-    sizes = np.asarray(sizes, np.int64).reshape(-1, 2)
+    intrinsics = np.asarray(intrinsic_rows, np.float64).reshape(-1, 4)
+    sizes = np.asarray(size_rows, np.int64).reshape(-1, 2)
     if config.downscale_factor > 1:
         intrinsics, sizes = scale_intrinsics(intrinsics, sizes, config.downscale_factor)
     return out_paths, intrinsics, sizes

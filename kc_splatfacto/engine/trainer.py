@@ -23,9 +23,10 @@ import math
 import random
 import time
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import torch
@@ -134,6 +135,16 @@ def _max_abs(tensor: torch.Tensor) -> torch.Tensor:
     return torch.maximum(-low, high)
 
 
+_T = TypeVar("_T")
+
+
+def _set_up(value: _T | None, name: str) -> _T:
+    """``value``, or a RuntimeError naming ``Trainer.<name>`` when it is None (setup() has not run)."""
+    if value is None:
+        raise RuntimeError(f"Trainer.{name} is set by Trainer.setup(), which has not run")
+    return value
+
+
 class TrainingDivergedError(RuntimeError):
     """Too many consecutive non-finite steps."""
 
@@ -148,9 +159,10 @@ class Trainer:
         config.resolve_aliases()
         self.config = config
         self.device = config.machine.resolve_device()
-        self.run_dir: Path | None = None
-        self.dataparser: DataParserConfig | None = None  # the resolved one, from plan_run
-        self.pipeline: Pipeline | None = None
+        # set by setup(): read through the properties below, which say so when setup() has not run
+        self._run_dir: Path | None = None
+        self._dataparser: DataParserConfig | None = None  # the resolved one, from plan_run
+        self._pipeline: Pipeline | None = None
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
         self.schedulers: dict[str, Any] = {}
         self.start_step = 0
@@ -166,36 +178,51 @@ class Trainer:
         self._side_s = 0.0  # logging work inside a step (gradient shares), kept out of train_s
         self._side_cpu_s = 0.0
         self._bad_in_a_row = 0
+        self._t0 = self._lap_start = time.perf_counter()  # both restarted when train() begins
         self.callbacks: list[TrainingCallback] = []
         self.record_sinks: list[RecordSink] = []
 
-    def add_callbacks(self, callbacks: list[TrainingCallback] = (), sinks: list[RecordSink] = ()) -> None:
+    def add_callbacks(self, callbacks: Sequence[TrainingCallback] = (), sinks: Sequence[RecordSink] = ()) -> None:
         """Register what watches the run (a viewer, a logger): see :mod:`kc_splatfacto.engine.callbacks`."""
         self.callbacks.extend(callbacks)
         self.record_sinks.extend(sinks)
 
     @property
+    def pipeline(self) -> Pipeline:
+        return _set_up(self._pipeline, "pipeline")
+
+    @property
+    def run_dir(self) -> Path:
+        return _set_up(self._run_dir, "run_dir")
+
+    @property
+    def dataparser(self) -> DataParserConfig:
+        return _set_up(self._dataparser, "dataparser")
+
+    @property
     def model(self):
-        return self.pipeline.model if self.pipeline is not None else None
+        """The model, or None before setup()."""
+        return self._pipeline.model if self._pipeline is not None else None
 
     @property
     def datamanager(self):
-        return self.pipeline.datamanager if self.pipeline is not None else None
+        """The data manager, or None before setup()."""
+        return self._pipeline.datamanager if self._pipeline is not None else None
 
     # ----------------------------------------------------------------------------------------------- set-up
     def setup(self) -> None:
         cfg = self.config
         plan = plan_run(cfg, map_location=self.device)  # bad settings and foreign resumes refused before data loads
-        self.dataparser = plan.dataparser
+        self._dataparser = plan.dataparser
         check_backends(cfg.logging)
         cfg.machine.seed_everything()
-        self.pipeline = cfg.pipeline.setup(device=self.device, seed=cfg.machine.seed, dataparser=plan.dataparser)
+        self._pipeline = cfg.pipeline.setup(device=self.device, seed=cfg.machine.seed, dataparser=plan.dataparser)
         check_training_image_sizes(self.datamanager, cfg.pipeline.model)
         announce_seed_points(self.datamanager, cfg.pipeline.model)
         self.model.train()
         self._build_optimizers()
         checkpoint = plan.checkpoint
-        self.run_dir = plan.run_dir or self._new_run_dir()
+        self._run_dir = plan.run_dir or self._new_run_dir()
         self.run_dir.mkdir(parents=True, exist_ok=True)
         save_config(recorded_config(cfg, plan.dataparser), self.run_dir / "config.yml")
         self.datamanager.save_dataparser_transform(self.run_dir / "dataparser_transforms.json")
@@ -396,7 +423,7 @@ class Trainer:
     # ----------------------------------------------------------------------------------------------- the loop
     def train(self) -> Path:
         """Run (or resume) training; returns the run folder."""
-        if self.pipeline is None:
+        if self._pipeline is None:
             self.setup()
         cfg = self.config
         # (no warnings.catch_warnings around the loop: mutating filters re-enables once-only warnings every step)

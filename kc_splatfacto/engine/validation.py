@@ -17,6 +17,8 @@ import typing
 from collections.abc import Callable
 from typing import Any, Literal, Union
 
+import tyro
+
 from kc_splatfacto.errors import UserError
 
 SEED_MAX = 2**32 - 1
@@ -206,7 +208,7 @@ def _matches(value: Any, annotation: Any) -> bool:
     if origin is typing.Annotated:
         return _matches(value, typing.get_args(annotation)[0])
     if origin in (Union, types.UnionType):
-        return any(_matches(value, arg) for arg in typing.get_args(annotation))
+        return any(_matches(value, arg) for arg in typing.get_args(annotation) if not _hidden_choice(arg))
     if origin is Literal:
         return any(value == choice and type(value) is type(choice) for choice in typing.get_args(annotation))
     if origin in (tuple, list):
@@ -233,6 +235,13 @@ def _matches(value: Any, annotation: Any) -> bool:
     return True  # an annotation this checker does not know: left to the code that uses the field
 
 
+def _hidden_choice(annotation: Any) -> bool:
+    """A union member marked ``tyro.conf.Suppress``: tyro's subcommand unions carry a hidden ``None`` that no command
+    line can choose (``DataManagerConfig.dataparser`` once the dataparsers are installed), not a value to accept."""
+    return typing.get_origin(annotation) is typing.Annotated and any(
+        meta is tyro.conf.Suppress for meta in annotation.__metadata__)
+
+
 def _describe(annotation: Any) -> str:
     text = str(annotation).replace("typing.", "").replace("pathlib.", "").replace("<class '", "").replace("'>", "")
     return text
@@ -241,7 +250,7 @@ def _describe(annotation: Any) -> str:
 def check_types(config: Any, prefix: str = "") -> None:
     """Every field of the config tree against its annotation; a :class:`ConfigValueError` naming the first misfit."""
     try:
-        hints = typing.get_type_hints(type(config))
+        hints = typing.get_type_hints(type(config), include_extras=True)
     except Exception:  # noqa: BLE001  a plugin's config whose annotations do not resolve: its own code checks it
         hints = {}
     for f in dataclasses.fields(config):

@@ -80,6 +80,12 @@ class FrequencyLossConfig:
     cbc_correlation: bool = False
     """CBC on band correlations instead of covariances"""
 
+    @classmethod
+    def from_fields(cls, holder: object) -> FrequencyLossConfig:
+        """These settings read from the attributes of the same names on ``holder`` (a model config, a loss module):
+        the field list is this dataclass's, written once."""
+        return cls(**{field.name: getattr(holder, field.name) for field in dataclasses.fields(cls)})
+
     @property
     def active(self) -> bool:
         """Whether any term has a non-zero weight (with all three at zero the loss is off: Splatfacto)."""
@@ -577,12 +583,7 @@ class FrequencyLoss(nn.Module):
     @property
     def config(self) -> FrequencyLossConfig:
         """This loss's settings."""
-        return FrequencyLossConfig(
-            wavelet_weight=self.wavelet_weight, kc_weight=self.kc_weight, cbc_weight=self.cbc_weight, wave=self.wave,
-            wavelet_levels=self.wavelet_levels, wavelet_mode=self.wavelet_mode,
-            wavelet_weighting=self.wavelet_weighting, kc_supervised=self.kc_supervised,
-            cbc_supervised=self.cbc_supervised, cbc_correlation=self.cbc_correlation,
-        )
+        return FrequencyLossConfig.from_fields(self)
 
     @property
     def active(self) -> bool:

@@ -154,12 +154,7 @@ class SplatfactoModelConfig:
 
     def frequency_loss_config(self) -> FrequencyLossConfig:
         """The wavelet/KC/CBC settings of this model (its fields of the same names)."""
-        return FrequencyLossConfig(
-            wavelet_weight=self.wavelet_weight, kc_weight=self.kc_weight, cbc_weight=self.cbc_weight, wave=self.wave,
-            wavelet_levels=self.wavelet_levels, wavelet_mode=self.wavelet_mode,
-            wavelet_weighting=self.wavelet_weighting, kc_supervised=self.kc_supervised,
-            cbc_supervised=self.cbc_supervised, cbc_correlation=self.cbc_correlation,
-        )
+        return FrequencyLossConfig.from_fields(self)
 
     def density_strategy(self, num_train_data: int) -> DefaultStrategy:
         """Density control as Splatfacto 1.1.5 configures gsplat's ``DefaultStrategy`` from these fields (step counts

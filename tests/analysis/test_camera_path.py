@@ -7,8 +7,8 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation, Slerp
 
-from kc_splatfacto.data.outputs import Cameras
 from kc_splatfacto.analysis.camera_path import interpolate_camera_path
+from kc_splatfacto.data.outputs import Cameras
 from kc_splatfacto.render import quat_to_rotmat
 from kc_splatfacto.render.projection import rotmat_to_quat
 

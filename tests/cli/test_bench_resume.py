@@ -5,8 +5,8 @@ import json
 
 import pytest
 
-from kc_splatfacto.cli import bench
 from kc_splatfacto.analysis import report
+from kc_splatfacto.cli import bench
 from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.trainer import Trainer
 

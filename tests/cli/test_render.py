@@ -4,7 +4,6 @@ frame at the render's size; nerfstudio camera-path JSON gives the cameras nerfst
 from __future__ import annotations
 
 import json
-import math
 
 import cv2
 import numpy as np

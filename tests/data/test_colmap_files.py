@@ -8,9 +8,8 @@ import numpy as np
 import pytest
 
 from kc_splatfacto.data.base import DataParserError
-from kc_splatfacto.data.colmap import ColmapCamera, check_principal_point, read_colmap_model
+from kc_splatfacto.data.colmap import SUPPORTED_CAMERA_MODELS, ColmapCamera, check_principal_point, read_colmap_model
 from kc_splatfacto.data.colmap_files import COLMAP_CAMERA_MODELS, check_model_files
-from kc_splatfacto.data.colmap import SUPPORTED_CAMERA_MODELS
 from tests.hostile_scenes import NUM_VIEWS, colmap_scene
 
 

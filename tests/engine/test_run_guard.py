@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from kc_splatfacto.data.detect import AutoDataParserConfig
 from kc_splatfacto.engine.checkpoints import list_checkpoints, load_checkpoint, save_checkpoint
 from kc_splatfacto.engine.config import load_config
 from kc_splatfacto.engine.metrics_log import read_metrics
@@ -64,7 +65,7 @@ def test_unwritable_output_folder_is_refused_before_the_data_loads(tmp_path):
     blocker = tmp_path / "a-file"
     blocker.write_text("not a folder")
     config = tiny_demo_config("splatfacto", blocker / "outputs", iterations=2)
-    config.pipeline.datamanager.dataparser = None
+    config.pipeline.datamanager.dataparser = AutoDataParserConfig()
     config.pipeline.datamanager.data = tmp_path / "no-such-scene"  # would fail first if the data loaded first
     with pytest.raises(UserError, match=f"--output-dir {blocker / 'outputs'} is not a writable folder"):
         Trainer(config).train()

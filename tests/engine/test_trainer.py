@@ -295,7 +295,7 @@ def test_checkpoint_write_is_atomic_and_config_round_trips(tmp_path):
     from kc_splatfacto.engine.config import load_config, save_config
 
     good = save_checkpoint(tmp_path, 5, {"step": 5})
-    with pytest.raises(Exception):
+    with pytest.raises(TypeError, match="pickle"):
         save_checkpoint(tmp_path, 6, {"step": 6, "unpicklable": threading.Lock()})
     assert sorted(p.name for p in tmp_path.iterdir()) == [good.name]  # no partial step-6 file, no temp file left
     config = tiny_demo_config("kc-splatfacto-fine", tmp_path, iterations=7)

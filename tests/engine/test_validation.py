@@ -98,3 +98,19 @@ def test_wrong_types_are_refused(dotted, value):
     set_field(config, dotted, value)
     with pytest.raises(ConfigValueError, match=f"{dotted} = .* has the wrong type"):
         validate_config(config)
+
+
+@pytest.mark.parametrize("installed", [False, True], ids=["as-imported", "after-a-command-line"])
+def test_missing_dataparser_is_refused_before_and_after_the_cli_installs_subcommands(installed, monkeypatch):
+    # the command line's annotation is tyro's subcommand union, which carries a hidden (suppressed) None member: the
+    # same config must be refused either way, not only when no command line was built earlier in the process
+    from kc_splatfacto.engine import datamanager
+
+    monkeypatch.setattr(datamanager, "DataParserUnion", datamanager.DataParserUnion)  # restored after the test
+    if installed:
+        datamanager.install_dataparser_subcommands()
+        assert "Suppress" in repr(datamanager.DataParserUnion)  # the case this test is about
+    config = tiny_demo_config("splatfacto", "/tmp/unused")
+    config.pipeline.datamanager.dataparser = None
+    with pytest.raises(ConfigValueError, match="pipeline.datamanager.dataparser = None has the wrong type"):
+        validate_config(config)

@@ -148,7 +148,6 @@ def test_non_finite_pred_raises_naming_pred(bad):
 
 @pytest.mark.parametrize("bad", [float("nan"), float("inf")])
 def test_non_finite_gt_raises_naming_gt(bad):
-    pred = torch.rand(1, 3, 48, 48)
     gt = torch.rand(1, 3, 48, 48)
     gt[0, 0, 0, 0] = bad
     loss = FrequencyLoss()

@@ -207,7 +207,7 @@ def test_cpu_level_equals_torch_path(mode):
             torch.testing.assert_close(grad, grad_ref, rtol=0, atol=1e-12)
             # gradcheck of the compiled adjoint itself (not only agreement with autograd's conv backward)
             if height * width <= 60:
-                assert torch.autograd.gradcheck(lambda t: torch.cat(_level(t, wave, flen, mode, bank), dim=1), (x,))
+                assert torch.autograd.gradcheck(lambda t: torch.cat(_level(t, wave, flen, mode, bank), dim=1), (x,))  # noqa: B023 (called at once)
 
 
 def test_cpu_level_results_do_not_depend_on_thread_count():

@@ -167,13 +167,14 @@ def test_evaluate_split_matches_numpy_psnr_and_kornia_ssim(demo_train):
 
 def test_frequency_terms_equal_a_direct_frequency_loss_call(demo_train):
     # every frequency setting away from its default, so a field the model's config does not pass on changes the values
-    from kc_splatfacto.losses.frequency import FrequencyLoss
+    from kc_splatfacto.losses.frequency import FrequencyLoss, FrequencyLossConfig
 
     settings = dict(wavelet_weight=2e-3, kc_weight=3e-5, cbc_weight=4e-2, wave="db2", wavelet_levels=2,
                     wavelet_mode="periodization", wavelet_weighting="fine", kc_supervised=False,
                     cbc_supervised=False, cbc_correlation=True)
     model, dataset = make_model(demo_train, **settings)
     model.eval()  # fixed background: the direct call sees the same composited GT
+    assert model.config.frequency_loss_config() == FrequencyLossConfig(**settings) == model.frequency_loss.config
     out = model.get_outputs(dataset.cameras[2])
     losses = model.get_loss_dict(out, {"image": dataset.image_uint8(2), "image_idx": 2})
     direct_loss = FrequencyLoss(**settings)

@@ -21,7 +21,7 @@ def make_params(n=6, seed=0):
 
 def adam_after_one_step(params):
     optimizers = {k: torch.optim.Adam([p], lr=1e-2) for k, p in params.items()}
-    for k, p in params.items():
+    for p in params.values():
         p.grad = torch.randn_like(p)
     for opt in optimizers.values():
         opt.step()

@@ -68,7 +68,7 @@ def test_forward_matches_reference(dtype, atol, antialiased, sh_degree):
     assert torch.equal(out[0] > 0, ref[0] > 0)
     for name, a, e in zip(NAMES[1:], out[1:], ref[1:]):
         scale = max(1.0, float(e.abs().max())) if name in ("means2d", "conics") else 1.0
-        torch.testing.assert_close(a, e, rtol=0, atol=atol * scale, msg=lambda m: f"{name}: {m}")
+        torch.testing.assert_close(a, e, rtol=0, atol=atol * scale, msg=lambda m: f"{name}: {m}")  # noqa: B023 (called at once)
 
 
 def _loss_weights(outputs, seed):
@@ -91,7 +91,7 @@ def test_gradients_match_reference(antialiased, sh_degree):
     for name, a, e in zip(("means", "quats", "scales", "opacities", "shs", "viewmats"), *results):
         assert e.abs().max() > 0, f"{name}: reference gradient is zero (vacuous)"
         floor = 1e-9 * float(e.abs().max())
-        torch.testing.assert_close(a, e, rtol=1e-4, atol=floor, msg=lambda m: f"{name}: {m}")
+        torch.testing.assert_close(a, e, rtol=1e-4, atol=floor, msg=lambda m: f"{name}: {m}")  # noqa: B023 (called at once)
         # float64 on both sides: far tighter than the 1e-4 contract
         assert float((a - e).abs().max()) <= 1e-9 * max(1.0, float(e.abs().max())), name
 

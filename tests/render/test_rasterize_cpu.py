@@ -315,9 +315,9 @@ def test_rasterization_cpu_backend_matches_torch_backend(sh_degree, render_mode,
 
 
 def test_branch_free_exp_is_within_two_ulp():
-    from kc_splatfacto.render import _cpu_kernels as K
-
     from numba import njit
+
+    from kc_splatfacto.render import _cpu_kernels as K
 
     @njit
     def exp_neg_array(s, out):

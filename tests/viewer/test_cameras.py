@@ -11,7 +11,14 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from kc_splatfacto.data.demo import DemoDataParserConfig
-from kc_splatfacto.viewer.cameras import camera_from_pose, camera_path_json, pose_of, render_size, splat_arrays, world_up
+from kc_splatfacto.viewer.cameras import (
+    camera_from_pose,
+    camera_path_json,
+    pose_of,
+    render_size,
+    splat_arrays,
+    world_up,
+)
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,7 @@ from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR
 from kc_splatfacto.engine.trainer import Trainer
 from kc_splatfacto.errors import UserError
 from tests.training_utils import tiny_demo_config
-from tests.viewer.browser import correlation, headless_chromium, resize, screenshot, wait_for
+from tests.viewer.browser import correlation, headless_chromium, screenshot, wait_for
 
 pytest.importorskip("viser", reason="the viewer needs viser: pip install 'kc-splatfacto[viewer]'")
 
