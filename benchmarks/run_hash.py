@@ -7,7 +7,8 @@ checked, and a long study can check that the numerics it runs on have not moved 
 
 The run is castle-P30 at 1/4 resolution (192x128), seed 0, Splatfacto's real schedule (the study's settings), on the
 CPU, in a temporary folder. Prints one line: ``<method> <steps> steps <threads> threads: <16 hex digits>
-(<Gaussians> Gaussians, <seconds> s)``. The reference hashes of the current numerics are in docs/training.md.
+(<Gaussians> Gaussians, <seconds> s) on <CPU kind>`` (the hash depends on the kind: LLVM's CPU name and its vector
+features, :func:`kc_splatfacto.study.machine.cpu_kind`). The reference hashes of the current numerics are in docs/training.md.
 """
 
 import argparse
@@ -33,6 +34,7 @@ import torch  # noqa: E402
 
 from kc_splatfacto.engine.trainer import Trainer  # noqa: E402
 from kc_splatfacto.registry import discover_methods  # noqa: E402
+from kc_splatfacto.study.machine import machine_signature  # noqa: E402
 
 SHARED_DATA = Path(os.environ.get("KC_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
@@ -84,7 +86,7 @@ def main() -> int:
         trainer.train()
         seconds = time.perf_counter() - t0
         print(f"{args.method} {args.steps} steps {torch.get_num_threads()} threads: {state_hash(trainer)} "
-              f"({trainer.model.num_points} Gaussians, {seconds:.0f} s)", flush=True)
+              f"({trainer.model.num_points} Gaussians, {seconds:.0f} s) on {machine_signature()['kind']}", flush=True)
     return 0
 
 

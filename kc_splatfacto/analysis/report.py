@@ -35,7 +35,7 @@ METRIC_LABELS = {"psnr": "PSNR (dB)", "ssim": "SSIM", "lpips": "LPIPS"}
 #: Columns of the flat evaluation table, in order.
 EVAL_COLUMNS = (
     "scene", "method", "seed", "step", "elapsed_s", "train_s", "train_cpu_s", "psnr", "ssim", "lpips", "lpips_net",
-    "lpips_vgg", "num_images", "run_dir",
+    "lpips_vgg", "num_images", "run_dir", "cpu",
 )
 #: Final-evaluation metrics compared in the paired tables (``lpips_vgg``: the last evaluation only).
 PAIRED_METRICS = {"psnr": "psnr_db", "ssim": "ssim_pct", "lpips": "lpips_pct", "lpips_vgg": "lpips_vgg_pct"}
@@ -82,9 +82,11 @@ def _minus(value: float | None, offset: float) -> float | None:
     return None if value is None else value - offset
 
 
-def eval_rows(records: Iterable[dict], scene: str, method: str, seed: int, run_dir: str | Path = "") -> list[dict]:
+def eval_rows(records: Iterable[dict], scene: str, method: str, seed: int, run_dir: str | Path = "",
+              cpu: str = "") -> list[dict]:
     """The evaluation records of one run as flat rows (:data:`EVAL_COLUMNS`), sorted by step, one per step; clocks
-    without the run's start-up (:func:`clock_offsets`)."""
+    without the run's start-up (:func:`clock_offsets`). ``cpu``: the kind(s) of CPU the run trained on (what the
+    kernels' rounding depends on; ``""`` when not recorded), so pairs that mixed machines can be named."""
     records = list(records)
     offset = clock_offsets(records)
     rows: list[dict[str, Any]] = []
@@ -110,6 +112,7 @@ def eval_rows(records: Iterable[dict], scene: str, method: str, seed: int, run_d
                 "lpips_vgg": _number(record.get("lpips_vgg")),
                 "num_images": record.get("num_images"),
                 "run_dir": str(run_dir),
+                "cpu": cpu,
             }
         )
     # one row per step: a log continued after an interruption may repeat a step; the later record wins
@@ -141,6 +144,7 @@ def read_rows_csv(path: str | Path) -> list[dict]:
                 row[key] = float(row[key]) if row.get(key) not in ("", None) else None
             row["num_images"] = int(row["num_images"]) if row.get("num_images") not in ("", None) else None
             row["lpips_net"] = row.get("lpips_net") or None
+            row["cpu"] = row.get("cpu") or ""
             rows.append(row)
     return rows
 
@@ -444,7 +448,9 @@ def paired_deltas(rows: Sequence[dict], baseline: str) -> list[dict]:
     variation that dominates short runs. Returns ``seeds``, ``psnr_db`` (per-seed differences, dB), ``ssim_pct``,
     ``lpips_pct`` and ``lpips_vgg_pct`` (relative, %; None where unavailable), with their ``_mean`` and
     ``_interval`` (95 % Student t interval of the mean over seeds, None with fewer than two seeds:
-    :func:`mean_interval`).
+    :func:`mean_interval`), and ``mixed_cpu_seeds``: the seeds whose two runs trained on different kinds of CPU
+    (both recorded), whose difference then also holds a change of float32 rounding (kept: it acts like another
+    seed, but the report names them).
     """
     finals = {(r["scene"], r["method"], r["seed"]): r for r in final_rows(rows)}
     out = []
@@ -454,7 +460,8 @@ def paired_deltas(rows: Sequence[dict], baseline: str) -> list[dict]:
         seeds = sorted(k[2] for k in finals if k[:2] == (scene, method) and (scene, baseline, k[2]) in finals)
         if not seeds:
             continue
-        entry: dict = {"scene": scene, "method": method, "seeds": seeds}
+        entry: dict = {"scene": scene, "method": method, "seeds": seeds, "mixed_cpu_seeds": [
+            s for s in seeds if _cpus_differ(finals[(scene, method, s)], finals[(scene, baseline, s)])]}
         for metric, key in PAIRED_METRICS.items():
             delta = _diff if metric == "psnr" else _rel_pct
             values = [delta(finals[(scene, method, s)].get(metric), finals[(scene, baseline, s)].get(metric))
@@ -465,6 +472,10 @@ def paired_deltas(rows: Sequence[dict], baseline: str) -> list[dict]:
             entry[f"{key}_interval"] = mean_interval(present)
         out.append(entry)
     return out
+
+
+def _cpus_differ(a: dict, b: dict) -> bool:
+    return bool(a.get("cpu")) and bool(b.get("cpu")) and a["cpu"] != b["cpu"]
 
 
 def pooled_deltas(paired: Sequence[dict]) -> list[dict]:
@@ -566,6 +577,10 @@ def markdown_paired_table(paired: Sequence[dict], baseline: str) -> str:
             f"{cells(e['lpips_pct'], e['lpips_pct_mean'], 2, e.get('lpips_pct_interval'))} | "
             f"{cells(e.get('lpips_vgg_pct', []), e.get('lpips_vgg_pct_mean'), 2, e.get('lpips_vgg_pct_interval'))} |"
         )
+    mixed = [f"{e['scene']} {e['method']} seed {s}" for e in paired for s in e.get("mixed_cpu_seeds", [])]
+    if mixed:
+        lines += ["", f"Pairs whose two runs trained on different kinds of CPU (their difference also holds a change "
+                      f"of float32 rounding): {', '.join(mixed)}."]
     return "\n".join(lines) + "\n"
 
 

@@ -53,6 +53,7 @@ from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.optimizers import SPLATFACTO_SCHEDULE_STEPS  # ``--steps-scale auto``: budget / this
 from kc_splatfacto.errors import UserError
 from kc_splatfacto.registry import discover_methods
+from kc_splatfacto.study.machine import machine_kinds
 from kc_splatfacto.study.runners import RayRunner, SerialRunner, StudyInterrupted
 from kc_splatfacto.study.runs import RunSpec, check_same_settings, is_finished
 
@@ -231,6 +232,7 @@ class Study:
             runs.append({"scene": spec.scene, "method": spec.method, "seed": spec.seed,
                          "run_dir": spec.label_dir if result["run_dir"] == str(spec.run_dir) else result["run_dir"],
                          "status": result["status"], "wall_s": result["wall_s"],
+                         "cpu": machine_kinds(result.get("machines", [])),
                          **({"error": result["error"]} if result.get("error") else {})})
         return runs
 
@@ -240,7 +242,8 @@ class Study:
         rows, lpips_note = [], None
         for run, spec in zip(runs, (s for s in self.specs if s.index in self.results)):
             records = self.results[spec.index]["records"]
-            rows += eval_rows(records, spec.scene, spec.method, spec.seed, run["run_dir"])
+            rows += eval_rows(records, spec.scene, spec.method, spec.seed, run["run_dir"],
+                              cpu=machine_kinds(self.results[spec.index].get("machines", [])))
             lpips_note = lpips_note or next(
                 (r.get("lpips_unavailable") for r in records if r.get("kind") == "eval" and r.get("lpips_unavailable")),
                 None,

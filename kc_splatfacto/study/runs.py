@@ -16,15 +16,18 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from kc_splatfacto.atomic import atomic_write_bytes, atomic_write_text
-from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, checkpoint_step, list_checkpoints
+from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, checkpoint_step, find_checkpoint, list_checkpoints
 from kc_splatfacto.engine.config import load_config
 from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.run_guard import differences
 from kc_splatfacto.engine.trainer import Trainer
 from kc_splatfacto.errors import UserError
+from kc_splatfacto.study.machine import MACHINE_FILE, read_machines, record_machine
 
-RESULT_FILES = ("config.yml", "metrics.jsonl", "dataparser_transforms.json")
+RESULT_FILES = ("config.yml", "metrics.jsonl", "dataparser_transforms.json", MACHINE_FILE)
 """a run's small files, sent back by a task for a study whose machines share no filesystem (never checkpoints)"""
 TIMING_KEYS = frozenset({"elapsed_s", "train_s", "train_cpu_s", "render_fps", "path"})
 """record fields that measure the machine, not the training: they differ between two runs with equal numbers"""
@@ -125,13 +128,15 @@ def execute_run(spec: RunSpec, *, resume: bool, send_files: bool = False) -> dic
     """Train, continue or reuse one run; never raises for the run's own failure (the study goes on without it).
 
     Returns a result: ``index``, ``status`` (``trained``, ``resumed``, ``restarted``, ``reused``, ``interrupted`` or
-    ``failed``), ``run_dir``, ``wall_s``, ``records`` (the run's ``metrics.jsonl``; empty when it failed), ``error``
+    ``failed``), ``run_dir``, ``wall_s``, ``records`` (the run's ``metrics.jsonl``; empty when it failed),
+    ``machines`` (its ``machine.json``: which CPU trained which stretch, :mod:`~kc_splatfacto.study.machine`), ``error``
     (``"Type: message"`` and the innermost frame, when failed) and, with ``send_files``, ``files``: the run's small
     files (:data:`RESULT_FILES`) as bytes, so a study on machines without a shared filesystem gets them back.
     A Ctrl-C (``KeyboardInterrupt``) is not a failure: it propagates.
     """
     start = time.perf_counter()
-    result: dict[str, Any] = {"index": spec.index, "run_dir": str(spec.run_dir), "records": [], "error": None}
+    result: dict[str, Any] = {"index": spec.index, "run_dir": str(spec.run_dir), "records": [], "machines": [],
+                              "error": None}
     try:
         config = spec.config
         if resume and is_finished(spec.run_dir, spec.max_steps):
@@ -143,11 +148,14 @@ def execute_run(spec: RunSpec, *, resume: bool, send_files: bool = False) -> dic
                 config = dataclasses.replace(config, load_dir=resume_point(spec.run_dir, config))
                 status = "resumed" if config.load_dir is not None else "restarted"
             trainer = Trainer(config)
+            from_step = checkpoint_step(find_checkpoint(config.load_dir)) if config.load_dir is not None else 0
+            record_machine(spec.run_dir, from_step, threads=torch.get_num_threads())
             run_dir = Path(trainer.train())
             if trainer.interrupted:
                 status = "interrupted"
         result["run_dir"] = str(run_dir)
         result["records"] = read_metrics(run_dir / "metrics.jsonl")
+        result["machines"] = read_machines(run_dir)
         if send_files:
             result["files"] = {n: (run_dir / n).read_bytes() for n in RESULT_FILES if (run_dir / n).is_file()}
     except Exception as exc:  # noqa: BLE001  (a run's failure is reported; the other runs go on)

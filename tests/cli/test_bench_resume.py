@@ -9,6 +9,7 @@ from kc_splatfacto.analysis import report
 from kc_splatfacto.cli import bench
 from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.trainer import Trainer
+from kc_splatfacto.study.machine import machine_signature, read_machines
 
 # 12 steps, evaluations at log-spaced steps 1, 2, 5, 12; checkpoints every 4 steps; tiny images
 ARGS = ["--data", "demo", "--methods", "splatfacto", "kc-splatfacto", "--seeds", "0", "--max-num-iterations", "12",
@@ -62,6 +63,10 @@ def test_resume_continues_an_interrupted_study(tmp_path, monkeypatch):
     assert [r["run_dir"] for r in runs] == [str(out / "runs" / "demo" / m / "seed0") for m in ("splatfacto", "kc-splatfacto")]
     assert (out / "runs" / "demo" / "splatfacto" / "seed0" / "metrics.jsonl").read_text() == first_log  # untouched
     assert not (out / "runs" / "demo" / "kc-splatfacto" / "seed0_1").exists()
+    # which machine trained which stretch: from step 0, then again from the step-4 checkpoint (machine.json)
+    assert [e["from_step"] for e in read_machines(killed_dir)] == [0, 4]
+    assert [e["from_step"] for e in read_machines(out / "runs" / "demo" / "splatfacto" / "seed0")] == [0]
+    assert {r["cpu"] for r in report.read_rows_csv(out / "evals.csv")} == {machine_signature()["kind"]}
 
     records = read_metrics(killed_dir / "metrics.jsonl")
     for kind in ("eval", "train", "checkpoint"):
