@@ -23,8 +23,9 @@ $(VENV)/.installed: pyproject.toml Makefile
 
 install: $(VENV)/.installed
 
+# --durations: every CI log names the slowest tests (the suite must stay well under 15 minutes)
 test: install
-	$(PY) -m pytest -q tests
+	$(PY) -m pytest -q --durations=15 tests
 
 # ruff (package and tests) and mypy (package), configured in pyproject.toml ([tool.ruff], [tool.mypy]); pinned so
 # that a new release's new rules do not fail an unchanged tree; installed into the venv on first use
