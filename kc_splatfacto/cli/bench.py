@@ -242,8 +242,7 @@ class Study:
         rows, lpips_note = [], None
         for run, spec in zip(runs, (s for s in self.specs if s.index in self.results)):
             records = self.results[spec.index]["records"]
-            rows += eval_rows(records, spec.scene, spec.method, spec.seed, run["run_dir"],
-                              cpu=machine_kinds(self.results[spec.index].get("machines", [])))
+            rows += eval_rows(records, spec.scene, spec.method, spec.seed, run["run_dir"], cpu=run["cpu"])
             lpips_note = lpips_note or next(
                 (r.get("lpips_unavailable") for r in records if r.get("kind") == "eval" and r.get("lpips_unavailable")),
                 None,
