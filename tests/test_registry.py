@@ -92,3 +92,20 @@ def test_a_broken_plugin_does_not_break_importing_the_engine(tmp_path):
     assert lines[0] == "imported"
     # the patched entry points are the ones discovery reads: the same plugin fails discovery, naming itself
     assert lines[1].startswith("discovery: entry point 'broken'") and "no_such_plugin_module_xyz" in lines[1]
+
+
+def test_experimental_methods_load_through_the_env_var_and_differ_from_their_base_in_the_sh_cap_only(monkeypatch):
+    import dataclasses
+
+    monkeypatch.delenv(registry.METHOD_ENV, raising=False)
+    registered = discover_methods()
+    assert "splatfacto-sparse-sh" not in registered  # not registered until a study shows it helps
+    monkeypatch.setenv(registry.METHOD_ENV, "splatfacto-sparse-sh=method_configs.experiments:splatfacto_sparse_sh,"
+                       "kc-splatfacto-sparse-sh=method_configs.experiments:kc_splatfacto_sparse_sh")
+    methods = discover_methods()
+    for variant, base in (("splatfacto-sparse-sh", "splatfacto"), ("kc-splatfacto-sparse-sh", "kc-splatfacto")):
+        model = dataclasses.asdict(methods[variant].config.pipeline.model)
+        base_model = dataclasses.asdict(registered[base].config.pipeline.model)
+        assert model.pop("sh_views_per_coefficient") == 2.0 and base_model.pop("sh_views_per_coefficient") == 0.0
+        assert model == base_model
+        assert methods[variant].config.method_name == variant

@@ -143,6 +143,7 @@ RULES: tuple[tuple[str, tuple[Callable, str]], ...] = (
     ("pipeline.model.ssim_lambda", real(0.0, 1.0)),
     ("pipeline.model.stop_split_at", integer(0)),
     ("pipeline.model.sh_degree", integer(0, SH_MAX_DEGREE)),
+    ("pipeline.model.sh_views_per_coefficient", real(0.0)),
     ("pipeline.model.max_gauss_ratio", real(1.0)),
     ("pipeline.model.steps_scale", real(0.0, low_open=True)),
     ("pipeline.model.wavelet_weight", real(0.0)),

@@ -101,6 +101,10 @@ class SplatfactoModelConfig:
     """stop densification (splitting and duplication) at this step"""
     sh_degree: int = 3
     """maximum degree of the spherical harmonics of the colours (0: plain RGB)"""
+    sh_views_per_coefficient: float = 0.0
+    """> 0: the SH degree also follows the number of training views, the largest d <= sh_degree whose (d+1)^2
+    coefficients per colour each have at least this many views (2: degree 1 on 12 views, 0 on 5, 3 from 32 views);
+    0: sh_degree as given"""
     use_scale_regularization: bool = False
     """PhysGaussian's scale regularization (penalizes max/min scale ratios above max_gauss_ratio)"""
     max_gauss_ratio: float = 10.0
@@ -151,6 +155,18 @@ class SplatfactoModelConfig:
             stop_screen_size_at=self.scaled(self.stop_screen_size_at),
             stop_split_at=self.scaled(self.stop_split_at),
         )
+
+    def sh_degree_for_views(self, num_views: int) -> int:
+        """The SH degree a scene of ``num_views`` training views gets: ``sh_degree``, capped by
+        ``sh_views_per_coefficient`` (a view-dependent colour of degree d has (d+1)^2 unknowns per channel, and a
+        Gaussian is seen by at most ``num_views`` views: with fewer views than unknowns it fits the training views'
+        colours and guesses the rest)."""
+        if self.sh_views_per_coefficient <= 0:
+            return self.sh_degree
+        degree = 0
+        while degree < self.sh_degree and (degree + 2) ** 2 * self.sh_views_per_coefficient <= num_views:
+            degree += 1
+        return degree
 
     def frequency_loss_config(self) -> FrequencyLossConfig:
         """The wavelet/KC/CBC settings of this model (its fields of the same names)."""
@@ -244,7 +260,8 @@ class SplatfactoModel(torch.nn.Module):
     Args:
         config: the model config.
         scene_scale: radius of the normalized scene (density-control thresholds multiply it).
-        num_train_data: number of training images (density control pauses that long after each opacity reset).
+        num_train_data: number of training images (density control pauses that long after each opacity reset; with
+            ``sh_views_per_coefficient`` it caps the SH degree).
         seed_points: ([M, 3] points, [M, 3] uint8 colours or None), or None for random initialization.
     """
 
@@ -261,11 +278,13 @@ class SplatfactoModel(torch.nn.Module):
         self.schedule = config.step_schedule()
         self.scene_scale = float(scene_scale)
         self.num_train_data = int(num_train_data)
+        self.sh_degree = config.sh_degree_for_views(self.num_train_data)
+        """the SH degree this scene's Gaussians hold (``config.sh_degree`` unless the views cap it)"""
         seeds = seed_points if seed_points is not None and not config.random_init else (None, None)
         self.gauss_params = init_gaussian_params(
             seeds[0],
             seeds[1],
-            sh_degree=config.sh_degree,
+            sh_degree=self.sh_degree,
             scene_scale=self.scene_scale,
             num_random=config.num_random,
             random_scale=config.random_scale,
@@ -346,7 +365,7 @@ class SplatfactoModel(torch.nn.Module):
         return self.get_buffer("background_color").to(self.device)
 
     def sh_degree_to_use(self) -> int:
-        return min(self.step // self.schedule.sh_degree_interval, self.config.sh_degree)
+        return min(self.step // self.schedule.sh_degree_interval, self.sh_degree)
 
     def get_downscale_factor(self) -> int:
         """Training resolution divisor: 2^num_downscales at the start, halved every ``resolution_schedule`` steps."""
@@ -370,7 +389,7 @@ class SplatfactoModel(torch.nn.Module):
         camera = rescale_cameras(camera.to(self.device), self.get_downscale_factor())
         width, height = int(camera.widths[0]), int(camera.heights[0])
         colors: torch.Tensor | SplitSH
-        if self.config.sh_degree > 0:
+        if self.sh_degree > 0:
             # the two parameters as they are: the cpu backend reads them in place (no [N, 16, 3] copy per step)
             colors = SplitSH(self.features_dc[:, None, :], self.features_rest)
             sh_degree = self.sh_degree_to_use()

@@ -68,7 +68,7 @@ def splat_arrays(model) -> dict[str, np.ndarray]:
         scales = torch.exp(model.scales.detach().double())
         covariances = rotations @ torch.diag_embed(scales**2) @ rotations.transpose(-1, -2)
         dc = model.features_dc.detach().double()
-        rgbs = (SH_C0 * dc + 0.5) if model.config.sh_degree > 0 else torch.sigmoid(dc)
+        rgbs = (SH_C0 * dc + 0.5) if model.sh_degree > 0 else torch.sigmoid(dc)
         return {
             "centers": model.means.detach().cpu().numpy().astype(np.float32),
             "covariances": covariances.cpu().numpy().astype(np.float32),

@@ -14,11 +14,14 @@ from kc_splatfacto.model.strategy import NoGaussiansLeftError
 from tests.training_utils import tiny_demo_config
 
 
-def test_resume_is_bit_identical_to_an_uninterrupted_run(tmp_path):
+@pytest.mark.parametrize("sh_views_per_coefficient", [0.0, 2.0])
+def test_resume_is_bit_identical_to_an_uninterrupted_run(tmp_path, sh_views_per_coefficient):
     # 40 steps, refinement every 2 steps after step 10, opacity reset at 60 (not reached): the interruption at 17 falls
     # between refinements, so optimizer, schedule, density statistics, image order and RNG must all be restored.
+    # With the SH degree capped by the views, the resumed model must rebuild the same (narrower) features_rest.
     def config(name):
-        c = tiny_demo_config("kc-splatfacto", tmp_path / name, iterations=40, steps_scale=0.02)
+        c = tiny_demo_config("kc-splatfacto", tmp_path / name, iterations=40, steps_scale=0.02,
+                             sh_views_per_coefficient=sh_views_per_coefficient)
         c.machine.seed = 7
         return c
 
@@ -46,6 +49,10 @@ def test_resume_is_bit_identical_to_an_uninterrupted_run(tmp_path):
     assert resumed.start_step == 17
     assert full.model.num_points == resumed.model.num_points
     assert full.model.num_points != 2000  # density control did run
+    views = len(full.datamanager.train_dataset)
+    expected_degree = 3 if sh_views_per_coefficient == 0 else max(
+        d for d in range(4) if d == 0 or (d + 1) ** 2 * sh_views_per_coefficient <= views)
+    assert resumed.model.gauss_params["features_rest"].shape[1] == (expected_degree + 1) ** 2 - 1
     for name, param in full.model.gauss_params.items():
         assert torch.equal(param, resumed.model.gauss_params[name]), name
     for name in full.optimizers:

@@ -189,3 +189,33 @@ def test_frequency_terms_equal_a_direct_frequency_loss_call(demo_train):
     direct_grad, = torch.autograd.grad(sum(direct.values()), out["rgb"])
     assert float(direct_grad.abs().max()) > 0
     torch.testing.assert_close(model_grad, direct_grad, rtol=1e-5, atol=1e-12)
+
+
+@pytest.mark.parametrize("per_coefficient", [0.0, 0.5, 1.0, 2.0, 3.0])
+@pytest.mark.parametrize("max_degree", [0, 1, 2, 3])
+def test_sh_degree_for_views_is_the_largest_degree_with_enough_views_per_coefficient(per_coefficient, max_degree):
+    config = SplatfactoModelConfig(sh_degree=max_degree, sh_views_per_coefficient=per_coefficient)
+    for views in range(1, 60):
+        if per_coefficient == 0:
+            expected = max_degree  # the rule off: the configured degree whatever the views
+        else:
+            expected = max(d for d in range(max_degree + 1) if d == 0 or (d + 1) ** 2 * per_coefficient <= views)
+        assert config.sh_degree_for_views(views) == expected, views
+
+
+@pytest.mark.parametrize(("views", "degree"), [(12, 1), (5, 0), (40, 3)])
+def test_views_cap_the_sh_coefficients_the_model_holds_and_renders(demo_train, views, degree):
+    outputs, dataset = demo_train
+    config = SplatfactoModelConfig(num_downscales=0, sh_views_per_coefficient=2.0)
+    model = config.setup(scene_scale=outputs.scene_scale, num_train_data=views,
+                         seed_points=(outputs.points3d_xyz, outputs.points3d_rgb))
+    assert model.sh_degree == degree
+    assert model.features_rest.shape[1] == (degree + 1) ** 2 - 1
+    model.train()
+    model.step = 10**6  # past every SH interval: the degree in use is the capped one
+    assert model.sh_degree_to_use() == degree
+    rgb = model.get_outputs(dataset.cameras[0])["rgb"]
+    assert torch.isfinite(rgb).all()
+    rgb.sum().backward()
+    if degree > 0:
+        assert model.features_rest.grad is not None and model.features_rest.grad.abs().sum() > 0
