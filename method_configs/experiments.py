@@ -15,8 +15,8 @@ from 32 views on). Splatfacto's 30k castle-P30 collapse came from view-dependent
 
 from __future__ import annotations
 
-from method_configs.splatfacto_configs import KC_DEFAULTS, _trainer
 from kc_splatfacto.registry import MethodSpecification
+from method_configs.splatfacto_configs import KC_DEFAULTS, _trainer
 
 SPARSE_SH_VIEWS_PER_COEFFICIENT = 2.0
 """views per SH coefficient the sparse-SH variants ask for"""
