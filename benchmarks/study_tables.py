@@ -16,15 +16,14 @@ import json
 import math
 from collections import defaultdict
 from pathlib import Path
+from typing import Sequence
+
+from kc_splatfacto.analysis.report import format_mean_interval
 
 
-def _interval(values: dict, key: str, digits: int = 2) -> str:
-    mean, interval = values.get(f"{key}_mean", values.get(key)), values.get(f"{key}_interval")
-    if mean is None or (isinstance(mean, float) and math.isnan(mean)):
-        return "n/a"
-    if not interval:
-        return f"{mean:+.{digits}f}"
-    return f"{mean:+.{digits}f} [{interval[0]:+.{digits}f}, {interval[1]:+.{digits}f}]"
+def _interval(mean: float | None, interval: Sequence[float] | None) -> str:
+    """The report's ``mean [lo, hi]``, with a NaN mean (no pairs) shown as "n/a" too."""
+    return format_mean_interval(None if mean is None or math.isnan(mean) else mean, interval)
 
 
 def per_scene_table(paired: list[dict]) -> str:
@@ -33,11 +32,13 @@ def per_scene_table(paired: list[dict]) -> str:
              "|---|---|---|---|---|---|---|---|"]
     for entry in paired:
         per_seed = " / ".join(f"{v:+.2f}" for v in entry["psnr_db"])
+
+        def mean(key: str, entry: dict = entry) -> str:
+            return _interval(entry.get(f"{key}_mean"), entry.get(f"{key}_interval"))
         worse = {key: f"{sum(v > 0 for v in entry[key])} of {len(entry[key])}" for key in ("lpips_vgg_pct", "lpips_pct")}
         lines.append(f"| {entry['scene']} | {entry['method']} | {len(entry['seeds'])} | {per_seed} | "
-                     f"{_interval(entry, 'psnr_db')} | {_interval(entry, 'ssim_pct')} | "
-                     f"{_interval(entry, 'lpips_vgg_pct')}, {worse['lpips_vgg_pct']} | "
-                     f"{_interval(entry, 'lpips_pct')}, {worse['lpips_pct']} |")
+                     f"{mean('psnr_db')} | {mean('ssim_pct')} | {mean('lpips_vgg_pct')}, {worse['lpips_vgg_pct']} | "
+                     f"{mean('lpips_pct')}, {worse['lpips_pct']} |")
     return "\n".join(lines)
 
 
@@ -45,10 +46,8 @@ def pooled_table(pooled: list[dict]) -> str:
     lines = ["| arm | estimate | ΔPSNR (dB) | ΔSSIM (%) | ΔLPIPS-VGG (%) | ΔLPIPS-alex (%) |", "|---|---|---|---|---|---|"]
     for entry in pooled:
         for estimate, label in (("all_pairs", "all pairs"), ("per_scene", "per scene")):
-            cells = []
-            for key in ("psnr_db", "ssim_pct", "lpips_vgg_pct", "lpips_pct"):
-                cells.append(_interval({"v": entry.get(f"{key}_{estimate}"),
-                                        "v_interval": entry.get(f"{key}_{estimate}_interval")}, "v"))
+            cells = [_interval(entry.get(f"{key}_{estimate}"), entry.get(f"{key}_{estimate}_interval"))
+                     for key in ("psnr_db", "ssim_pct", "lpips_vgg_pct", "lpips_pct")]
             lines.append(f"| {entry['method']} ({entry['num_pairs']} pairs) | {label} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

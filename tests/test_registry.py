@@ -1,5 +1,6 @@
 """Entry-point and environment-variable discovery of methods."""
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -95,8 +96,6 @@ def test_a_broken_plugin_does_not_break_importing_the_engine(tmp_path):
 
 
 def test_experimental_methods_load_through_the_env_var_and_differ_from_their_base_in_the_sh_cap_only(monkeypatch):
-    import dataclasses
-
     monkeypatch.delenv(registry.METHOD_ENV, raising=False)
     registered = discover_methods()
     assert "splatfacto-sparse-sh" not in registered  # not registered until a study shows it helps

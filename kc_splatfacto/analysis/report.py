@@ -392,6 +392,14 @@ def _fmt(value: float | None, std: float | None, digits: int) -> str:
     return f"{value:.{digits}f} ± {std:.{digits}f}"
 
 
+def format_mean_interval(value: float | None, interval: Sequence[float] | None = None, digits: int = 2) -> str:
+    """``+m.mm [+lo, +hi]``: a signed mean with its interval when there is one; "n/a" for a missing mean."""
+    if value is None:
+        return "n/a"
+    ci = f" [{interval[0]:+.{digits}f}, {interval[1]:+.{digits}f}]" if interval else ""
+    return f"{value:+.{digits}f}{ci}"
+
+
 def _signed(value: float | None, digits: int, unit: str) -> str:
     return "" if value is None else f" ({value:+.{digits}f}{unit})"
 
@@ -524,12 +532,7 @@ def markdown_pooled_table(pooled: Sequence[dict], baseline: str) -> str:
         return ""
 
     def cell(entry: dict, key: str, kind: str, digits: int) -> str:
-        value = entry.get(f"{key}_{kind}")
-        if value is None:
-            return "n/a"
-        interval = entry.get(f"{key}_{kind}_interval")
-        ci = f" [{interval[0]:+.{digits}f}, {interval[1]:+.{digits}f}]" if interval else ""
-        return f"{value:+.{digits}f}{ci}"
+        return format_mean_interval(entry.get(f"{key}_{kind}"), entry.get(f"{key}_{kind}_interval"), digits)
 
     lines = [
         f"Pooled over scenes, differences to `{baseline}` at the same seed (final evaluation), "
@@ -557,8 +560,8 @@ def markdown_paired_table(paired: Sequence[dict], baseline: str) -> str:
     def cells(values: list, mean: float | None, digits: int, interval: tuple[float, float] | None = None) -> str:
         if mean is None:
             return "n/a | n/a"
-        ci = f" [{interval[0]:+.{digits}f}, {interval[1]:+.{digits}f}]" if interval is not None else ""
-        return " / ".join("n/a" if v is None else f"{v:+.{digits}f}" for v in values) + f" | {mean:+.{digits}f}{ci}"
+        per_seed = " / ".join("n/a" if v is None else f"{v:+.{digits}f}" for v in values)
+        return f"{per_seed} | {format_mean_interval(mean, interval, digits)}"
 
     lines = [
         f"Per-seed differences to `{baseline}` at the same seed (final evaluation); mean with its "
