@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 import time
 import traceback
 from dataclasses import dataclass
@@ -93,8 +94,7 @@ def resume_point(run_dir: Path, config: Any) -> Path | None:
     log = run_dir / "metrics.jsonl"
     checkpoints = list_checkpoints(run_dir / CHECKPOINT_DIR)
     if not checkpoints:
-        if log.is_file():
-            log.replace(run_dir / "metrics.interrupted.jsonl")
+        set_aside_first_attempt(run_dir)
         return None
     step = checkpoint_step(checkpoints[-1])
     if log.is_file():
@@ -110,6 +110,20 @@ def resume_point(run_dir: Path, config: Any) -> Path | None:
                 kept.append(line)
         atomic_write_text(log, "".join(line + "\n" for line in kept))
     return checkpoints[-1].parent
+
+
+def set_aside_first_attempt(run_dir: Path) -> None:
+    """Move what a run cut before its first checkpoint left in ``run_dir`` out of the way of the new attempt: its
+    log to ``metrics.interrupted.jsonl`` and its checkpoint folder (empty, or holding the temp file of the write the
+    cut stopped) to ``nerfstudio_models.interrupted``. Left in place, either one makes the trainer start the new
+    attempt in a sibling folder (``seed0_1``: a fresh run never writes over a log or a checkpoint folder), where the
+    study would not find its ``machine.json``."""
+    moves = (("metrics.jsonl", "metrics.interrupted.jsonl"), (CHECKPOINT_DIR, f"{CHECKPOINT_DIR}.interrupted"))
+    for name, aside in moves:
+        if (run_dir / name).exists():
+            if (run_dir / aside).is_dir():  # an earlier attempt's, which held no checkpoint either
+                shutil.rmtree(run_dir / aside)
+            (run_dir / name).replace(run_dir / aside)
 
 
 def is_finished(run_dir: Path, max_steps: int) -> bool:
@@ -151,6 +165,8 @@ def execute_run(spec: RunSpec, *, resume: bool, send_files: bool = False) -> dic
             from_step = checkpoint_step(find_checkpoint(config.load_dir)) if config.load_dir is not None else 0
             record_machine(spec.run_dir, from_step, threads=torch.get_num_threads())
             run_dir = Path(trainer.train())
+            if run_dir.absolute() != spec.run_dir.absolute():  # its machine.json and the study's report are there
+                raise RuntimeError(f"the run trained into {run_dir}, not the study's folder {spec.run_dir}")
             if trainer.interrupted:
                 status = "interrupted"
         result["run_dir"] = str(run_dir)

@@ -83,6 +83,39 @@ def test_resume_continues_an_interrupted_study(tmp_path, monkeypatch):
     assert _metric_rows(out) == _metric_rows(reference)
 
 
+def test_a_run_cut_during_its_first_checkpoint_restarts_in_its_own_folder(tmp_path, monkeypatch):
+    # a Ray task cancelled while it writes its first checkpoint leaves a checkpoint folder with no checkpoint (at most
+    # the temp file of the unfinished write): the restarted run must train in the study's folder, where its
+    # machine.json is, not in a sibling `seed0_1` whose report rows would have no CPU kind
+    args = [*ARGS]
+    args[args.index("--methods") + 1: args.index("--seeds")] = ["splatfacto"]
+    reference, out = tmp_path / "uninterrupted", tmp_path / "study"
+    assert bench.entrypoint([*args, "--output-dir", str(reference)]) == 0
+    original = Trainer.train_iteration
+
+    def dies_writing_the_first_checkpoint(self, step):
+        if step == 3:
+            folder = self.run_dir / "nerfstudio_models"
+            folder.mkdir()
+            (folder / ".step-000000004.ckpt.k3j2x9.tmp").write_bytes(b"half a checkpoint")
+            raise RuntimeError("killed")
+        return original(self, step)
+
+    monkeypatch.setattr(Trainer, "train_iteration", dies_writing_the_first_checkpoint)
+    assert bench.entrypoint([*args, "--output-dir", str(out)]) == 1
+    monkeypatch.setattr(Trainer, "train_iteration", original)
+    assert bench.entrypoint([*args, "--output-dir", str(out), "--resume"]) == 0
+    run_dir = out / "runs" / "demo" / "splatfacto" / "seed0"
+    [run] = json.loads((out / "runs.json").read_text())
+    assert run["status"] == "restarted" and run["run_dir"] == str(run_dir)
+    assert sorted(p.name for p in (out / "runs" / "demo" / "splatfacto").iterdir()) == ["seed0"]
+    assert run["cpu"] == machine_signature()["kind"]
+    assert {r["cpu"] for r in report.read_rows_csv(out / "evals.csv")} == {machine_signature()["kind"]}
+    assert [e["from_step"] for e in read_machines(run_dir)] == [0]
+    assert (run_dir / "nerfstudio_models.interrupted").is_dir() and (run_dir / "metrics.interrupted.jsonl").is_file()
+    assert _metric_rows(out) == _metric_rows(reference)
+
+
 def test_resume_refuses_a_run_folder_with_another_config(tmp_path, monkeypatch, capsys):
     out = tmp_path / "study"
     original = Trainer.train_iteration
