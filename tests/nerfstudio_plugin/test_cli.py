@@ -3,7 +3,7 @@
 nerfstudio's own ``colmap`` parser trains with the three KC-3DGS terms in its loss dictionary and writes a checkpoint;
 ``ns-train splatfacto-cpu`` trains without them; ``--load-dir`` continues a run; ``ns-eval`` writes its JSON (PSNR,
 SSIM, LPIPS); ``ns-export gaussian-splat`` writes a PLY the project's reader reads, one vertex per Gaussian;
-``ns-viewer`` serves its page."""
+``ns-render dataset`` renders every test view; ``ns-viewer`` serves its page."""
 
 from __future__ import annotations
 
@@ -87,6 +87,14 @@ def test_ns_export_writes_a_ply_the_project_reads(castle_run, tmp_path):
     assert len(vertices) == len(means)  # one vertex per Gaussian (ns-export would drop non-finite ones: none here)
     for axis, name in enumerate("xyz"):
         assert torch.equal(torch.from_numpy(vertices[name].astype("float32")), means[:, axis])
+
+
+def test_ns_render_renders_the_test_views(castle_run, tmp_path):
+    ns("ns-render", "dataset", "--load-config", str(castle_run / "config.yml"), "--output-path", str(tmp_path),
+       "--split", "test", cwd=tmp_path)
+    test_list = (shared_scene("castle-P30") / "test_list.txt").read_text().split()
+    for kind in ("rgb", "gt-rgb", "depth"):
+        assert len(list((tmp_path / "test" / kind).iterdir())) == len(test_list), kind
 
 
 def test_load_dir_continues_the_run(castle_run, tmp_path):
