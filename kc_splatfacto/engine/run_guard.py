@@ -147,7 +147,7 @@ def differences(stored: TrainerConfig, current: TrainerConfig, parser_settings: 
 #: about the steps already taken
 RESUMABLE_FIELDS = (
     "method_name", "experiment_name", "output_dir", "timestamp", "data", "max_num_iterations", "steps_per_save",
-    "steps_per_eval_all_images", "eval_at_steps", "final_lpips_nets", "save_only_latest_checkpoint", "load_dir",
+    "steps_per_eval_all_images", "eval_at_steps", "final_lpips_nets", "eval_lpips_nets", "save_only_latest_checkpoint", "load_dir",
     "load_step", "resume_from_other_run", "max_consecutive_bad_steps", "machine.device", "logging",
     "pipeline.datamanager.data", "pipeline.datamanager.dataparser", "pipeline.datamanager.eval_split",
     "pipeline.model.rasterization_backend",

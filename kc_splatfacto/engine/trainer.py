@@ -89,6 +89,8 @@ class TrainerConfig:
     """extra evaluation steps (e.g. log-spaced ones for quality-against-time reports)"""
     final_lpips_nets: tuple[str, ...] = FINAL_LPIPS_NETS
     """further LPIPS backbones of the last step's evaluation (``lpips_vgg`` in its record; every evaluation has alex)"""
+    eval_lpips_nets: tuple[str, ...] = ()
+    """further LPIPS backbones of every evaluation (a study's LPIPS-VGG along training; ~10x AlexNet's time)"""
     save_only_latest_checkpoint: bool = True
     """delete older checkpoints after writing a new one"""
     load_dir: Path | None = None
@@ -319,9 +321,8 @@ class Trainer:
 
     def evaluate(self, step: int) -> dict[str, Any]:
         final = step == self.config.max_num_iterations
-        result = self.pipeline.get_average_eval_image_metrics(
-            extra_lpips_nets=self.config.final_lpips_nets if final else ()
-        )
+        nets = (*self.config.eval_lpips_nets, *(self.config.final_lpips_nets if final else ()))
+        result = self.pipeline.get_average_eval_image_metrics(extra_lpips_nets=tuple(dict.fromkeys(nets)))
         record = {"kind": "eval", "step": step, "elapsed_s": self._elapsed(), "train_s": self._train_s,
                   "train_cpu_s": self._train_cpu_s, "split": self.config.pipeline.datamanager.eval_split}
         record.update({k: v for k, v in result.items() if k != "per_image"})

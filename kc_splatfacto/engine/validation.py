@@ -108,6 +108,7 @@ RULES: tuple[tuple[str, tuple[Callable, str]], ...] = (
     ("steps_per_eval_all_images", integer(0)),
     ("eval_at_steps", each(integer(0))),
     ("final_lpips_nets", one_of(*LPIPS_NETS)),
+    ("eval_lpips_nets", one_of(*LPIPS_NETS)),
     ("load_step", integer(0, optional=True)),
     ("max_consecutive_bad_steps", integer(1)),
     ("experiment_name", path_component()),

@@ -95,6 +95,21 @@ def test_metrics_schema_and_run_folder(tmp_path):
     assert times == sorted(times)
 
 
+def test_eval_lpips_nets_adds_lpips_vgg_to_every_evaluation(tmp_path):
+    config = tiny_demo_config("splatfacto", tmp_path, iterations=6)
+    config.eval_at_steps = (2,)
+    config.eval_lpips_nets = ("vgg",)
+    records = read_metrics(Trainer(config).train() / "metrics.jsonl")
+    evals = {r["step"]: r for r in records if r["kind"] == "eval"}
+    assert sorted(evals) == [2, 6]
+    if evals[2]["lpips"] is None:
+        pytest.skip(f"LPIPS weights not installed: {evals[2]['lpips_unavailable']}")
+    for record in evals.values():  # the last one asks for VGG twice (final_lpips_nets too): one value
+        assert 0 < record["lpips_vgg"] < 1 and all("lpips_vgg" in view for view in record["per_image"])
+        assert record["lpips_vgg"] == pytest.approx(sum(v["lpips_vgg"] for v in record["per_image"]) /
+                                                    record["num_images"], rel=1e-12)
+
+
 def test_final_evaluation_adds_lpips_vgg_and_per_view_records(tmp_path):
     from kc_splatfacto.lpips import lpips
 
