@@ -308,13 +308,15 @@ def plot_pooled_vs_time(rows: Sequence[dict], baseline: str, path: str | Path, t
     ax.set_xscale("log")
     ax.set_xlabel(f"{TIME_KEYS[time_key]}, mean over the method's runs")
     ax.set_ylabel(f"PSNR - {baseline} (dB, same scene and seed)")
-    ax.set_title("pooled over scenes: paired PSNR difference (mean, 95 % t band over pairs)", fontsize=9)
+    ax.set_title("pooled over scenes: paired PSNR difference at equal step (same scene and seed; mean, 95 % t band\n"
+                 "over pairs), drawn at the mean training time the method's runs had reached at that step", fontsize=9)
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=8)
     cost.axhline(1.0, color="k", lw=0.8)
     cost.set_xlabel("training step")
-    cost.set_ylabel(f"training time / {baseline}'s at the same step")
-    cost.set_title(f"cost: {TIME_KEYS[time_key].split(' (')[0]} ratio, pooled", fontsize=9)
+    cost.set_ylabel(f"mean time / {baseline}'s, same step")
+    cost.set_title(f"cost: ratio of the mean {TIME_KEYS[time_key].split(' (')[0]}s (not a mean of per-pair ratios)",
+                   fontsize=9)
     cost.grid(True, alpha=0.3)
     cost.legend(fontsize=8)
     return save_figure(fig, path, dpi=120)

@@ -43,6 +43,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from kc_splatfacto.analysis.along_training import write_along_training
 from kc_splatfacto.analysis.diagnostics import plot_kurtosis_gap_comparison
 from kc_splatfacto.analysis.report import eval_rows, plot_gradient_shares, write_report
 from kc_splatfacto.atomic import atomic_write_text
@@ -250,6 +251,8 @@ class Study:
         if rows:
             self.paths = write_report(rows, self.out_dir, baseline=self.baseline, time_key=self.args.time_key,
                                       lpips_note=lpips_note)
+            if self.baseline:  # the paired difference at every evaluated step (docs/report.md)
+                self.paths.update(write_along_training(rows, self.out_dir, self.baseline, self.args.time_key))
             self.paths.update(write_per_view(self._final_views(), self.out_dir))
 
     def _final_views(self) -> list[dict]:
