@@ -144,7 +144,8 @@ def plot_along_training(curves: Sequence[dict], method: str, baseline: str, path
 
 # ----------------------------------------------------------------------------------------------- tables
 def _cell(curve: dict, i: int, digits: int) -> str:
-    text = format_mean_interval(float(curve["mean"][i]), (float(curve["low"][i]), float(curve["high"][i])), digits)
+    interval = (float(curve["low"][i]), float(curve["high"][i])) if len(curve["pairs"]) > 1 else None  # one pair: none
+    text = format_mean_interval(float(curve["mean"][i]), interval, digits)
     return f"**{text}**" if curve["excludes_zero"][i] else text
 
 
