@@ -47,7 +47,7 @@ from kc_splatfacto.analysis.along_training import write_along_training
 from kc_splatfacto.analysis.diagnostics import plot_kurtosis_gap_comparison
 from kc_splatfacto.analysis.report import eval_rows, plot_gradient_shares, write_report
 from kc_splatfacto.atomic import atomic_write_text
-from kc_splatfacto.cli.main import run_cli
+from kc_splatfacto.cli.main import did_you_mean, run_cli
 from kc_splatfacto.cli.train import override_config
 from kc_splatfacto.data.detect import AutoDataParserConfig
 from kc_splatfacto.engine.metrics_log import read_metrics
@@ -164,7 +164,7 @@ def plan_runs(args: argparse.Namespace, methods_available: dict, runs_dir: Path)
     specs: list[RunSpec] = []
     for seed in args.seeds:
         for data in args.data:
-            scene = Path(str(data)).name if str(data) != "demo" else "demo"
+            scene = scene_name(data)
             for method in args.methods:
                 config = build_run_config(
                     methods_available[method].config, method=method,
@@ -379,11 +379,39 @@ def write_gradient_share_plots(runs: Sequence[dict], out_dir: Path) -> dict[str,
 
 
 def check_bench_args(args: argparse.Namespace) -> None:
-    """Refuse budgets that would train nothing, before the first run starts."""
+    """Refuse, before the first run starts, budgets that would train nothing and lists that would make two runs one
+    (a seed, a method or a scene name given twice); resolve ``--baseline`` (not given: ``splatfacto`` when it is
+    among the methods, with a note when it is not)."""
     if args.max_num_iterations < 1:
         raise UserError(f"--max-num-iterations must be at least 1, got {args.max_num_iterations}")
     if args.num_evals < 1:
         raise UserError(f"--num-evals must be at least 1, got {args.num_evals}")
+    for flag, values in (("--seeds", args.seeds), ("--methods", args.methods)):
+        twice = sorted({str(v) for v in values if values.count(v) > 1})
+        if twice:
+            raise UserError(f"{flag} lists {', '.join(twice)} more than once: each run would be trained twice into one "
+                            "folder; give each once")
+    names: dict[str, list[str]] = {}
+    for data in args.data:
+        names.setdefault(scene_name(data), []).append(str(data))
+    clashes = {name: paths for name, paths in names.items() if len(paths) > 1}
+    if clashes:
+        name, paths = next(iter(clashes.items()))
+        raise UserError(f"--data {' and '.join(paths)} are scenes of one name, '{name}': their runs and report rows "
+                        "would be one scene's; rename a folder (or link it under another name)")
+    if args.baseline is None:
+        args.baseline = DEFAULT_BASELINE if DEFAULT_BASELINE in args.methods else None
+        if args.baseline is None and len(args.methods) > 1:
+            print(f"[kc-bench] no baseline ({DEFAULT_BASELINE} is not among --methods): the report has no paired "
+                  "differences; pass --baseline METHOD for them", file=sys.stderr, flush=True)
+    elif args.baseline not in args.methods:
+        raise UserError(f"--baseline {args.baseline} is not among --methods ({', '.join(args.methods)})"
+                        f"{did_you_mean(args.baseline, args.methods)}: add it to --methods or choose one of them")
+
+
+def scene_name(data: str | Path) -> str:
+    """The name a scene's runs and report rows carry: its folder's name (``demo`` for the demo scene)."""
+    return "demo" if str(data) == "demo" else Path(str(data)).name
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -393,7 +421,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--data", nargs="+", required=True, help="scene folder(s), or 'demo'")
     parser.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS), help="registered method names")
-    parser.add_argument("--baseline", default=DEFAULT_BASELINE, help="method the deltas are taken against")
+    parser.add_argument("--baseline", default=None,
+                        help=f"method the deltas are taken against (default: {DEFAULT_BASELINE} when among --methods)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--max-num-iterations", type=int, default=1000, help="the step budget of every run")
     parser.add_argument("--num-evals", type=int, default=8, help="log-spaced test evaluations per run")

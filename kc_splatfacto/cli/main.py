@@ -34,15 +34,7 @@ def run_cli(prog: str, main: Callable[[list[str]], int], argv: Sequence[str] | N
     argv = [a for a in argv if a != DEBUG_FLAG]
     try:
         return main(argv)
-    except OSError as exc:
-        # a full disk or quota is the machine's state, not a bug: one line naming the file (writes are atomic, so
-        # nothing partial is left); any other OSError keeps its traceback
-        if debug or exc.errno not in FULL_DISK_ERRNOS:
-            raise
-        print(f"{prog}: error: could not write {exc.filename or 'a file'} ({exc.strerror}): free space on that disk "
-              "and run the command again", file=sys.stderr)
-        return USER_ERROR_EXIT
-    except UserError as exc:
+    except UserError as exc:  # first: a user error may also be an OSError (CheckpointNotFoundError)
         if debug:
             raise
         message = " ".join(line.strip() for line in str(exc).splitlines() if line.strip())  # one line
@@ -50,6 +42,14 @@ def run_cli(prog: str, main: Callable[[list[str]], int], argv: Sequence[str] | N
         if message.startswith(prefix):  # some messages already name the tool
             message = message[len(prefix):]
         print(f"{prog}: error: {message}", file=sys.stderr)
+        return USER_ERROR_EXIT
+    except OSError as exc:
+        # a full disk or quota is the machine's state, not a bug: one line naming the file (writes are atomic, so
+        # nothing partial is left); any other OSError keeps its traceback
+        if debug or exc.errno not in FULL_DISK_ERRNOS:
+            raise
+        print(f"{prog}: error: could not write {exc.filename or 'a file'} ({exc.strerror}): free space on that disk "
+              "and run the command again", file=sys.stderr)
         return USER_ERROR_EXIT
 
 

@@ -102,7 +102,10 @@ def find_checkpoint(load_dir: Path, step: int | None = None) -> Path:
         )
     checkpoints = list_checkpoints(load_dir)
     if not checkpoints:
-        raise CheckpointNotFoundError(f"no step-XXXXXXXXX.ckpt in {load_dir}")
+        raise CheckpointNotFoundError(
+            f"no checkpoint (step-XXXXXXXXX.ckpt) in {load_dir}: the run stopped before its first one was written; "
+            "train it again, or pass a run folder that has one"
+        )
     if step is None:
         return checkpoints[-1]
     path = load_dir / checkpoint_name(step)

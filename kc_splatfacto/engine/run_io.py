@@ -53,6 +53,11 @@ def check_stored_scene(parser: DataParserConfig, config_path: Path) -> None:
     is a :class:`UserError` saying so, rather than a "check --data" message about a flag kc-eval does not have.
     ``parser``: the stored dataparser config with the stored scene handed to it."""
     data = parser.data
+    if str(data).strip() in ("", "."):  # a hand-edited config.yml that lost its scene: never the current folder
+        raise UserError(
+            f"{config_path} names no scene (its dataparser's 'data:' is {str(data)!r}): set 'data:' in that config.yml "
+            "to the scene folder the run trained on"
+        )
     if str(data) == DEMO_NAME or Path(data).exists():
         return
     if Path(data).is_absolute():

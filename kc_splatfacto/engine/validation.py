@@ -115,6 +115,7 @@ RULES: tuple[tuple[str, tuple[Callable, str]], ...] = (
     ("timestamp", path_component()),
     ("machine.seed", integer(0, SEED_MAX)),
     ("logging.steps_per_log", integer(1)),
+    ("viewer.port", integer(0, 65535)),
     ("logging.steps_per_gradient_shares", integer(0)),
     ("pipeline.datamanager.dataparser.downscale_factor", integer(1)),
     ("pipeline.datamanager.dataparser.eval_interval", integer(1)),

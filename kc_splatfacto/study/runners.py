@@ -17,6 +17,7 @@ Threads: a Ray task asks for ``threads`` CPUs (``num_cpus``) and runs with ``OMP
 from __future__ import annotations
 
 import os
+import socket
 import sys
 import time
 from typing import Any, Callable, Sequence
@@ -135,6 +136,24 @@ def _ray_execute(spec: RunSpec, resume: bool, send_files: bool, progress_actor) 
     return execute_run(spec, resume=resume, send_files=send_files)
 
 
+RAY_CONNECT_TIMEOUT_S = 5.0
+"""how long ``--ray-address`` may take to answer a TCP connection before the study stops (``ray.init`` itself retries
+an address where nothing listens for minutes)"""
+
+
+def check_reachable(address: str, timeout: float = RAY_CONNECT_TIMEOUT_S) -> None:
+    """A one-line :class:`UserError` when nothing accepts a TCP connection at ``address`` (``HOST:PORT``, or
+    ``ray://HOST:PORT``) within ``timeout`` seconds; other forms (``auto``) are left to Ray."""
+    host, sep, port = address.split("://", 1)[-1].rpartition(":")
+    if not sep or not port.isdigit():
+        return
+    try:
+        socket.create_connection((host or "127.0.0.1", int(port)), timeout=timeout).close()
+    except OSError as exc:
+        raise UserError(f"--ray-address {address}: nothing answers there ({exc.strerror or exc}); start the cluster "
+                        f"(`ray start --head --port={port}` on {host or 'this machine'}) or fix the address") from exc
+
+
 def _authenticate_like_ray_start() -> None:
     """Use Ray's token authentication when a token is there (``~/.ray/auth_token``, ``RAY_AUTH_TOKEN``...) and
     ``RAY_AUTH_MODE`` does not decide: ``ray start`` turns it on in that case, but ``ray.init`` with an explicit
@@ -180,6 +199,7 @@ class RayRunner:
         ray = self.ray
         runtime_env = {"env_vars": self._env()}
         if self.address:
+            check_reachable(self.address)
             _authenticate_like_ray_start()
             ray.init(address=self.address, runtime_env=runtime_env, log_to_driver=False)
             cpus = int(ray.cluster_resources().get("CPU", 0))

@@ -170,7 +170,10 @@ def execute_run(spec: RunSpec, *, resume: bool, send_files: bool = False) -> dic
             if trainer.interrupted:
                 status = "interrupted"
         result["run_dir"] = str(run_dir)
-        result["records"] = read_metrics(run_dir / "metrics.jsonl")
+        # a run reused by a study of a shorter budget (its first steps are that budget's run: the schedules do not
+        # depend on it) reports up to the budget, never a later evaluation as its final one
+        records = read_metrics(run_dir / "metrics.jsonl")
+        result["records"] = [r for r in records if int(r.get("step", 0)) <= spec.max_steps]
         result["machines"] = read_machines(run_dir)
         if send_files:
             result["files"] = {n: (run_dir / n).read_bytes() for n in RESULT_FILES if (run_dir / n).is_file()}

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import math
+import socket
 import threading
 import time
 from pathlib import Path
@@ -49,6 +50,52 @@ JPEG_QUALITY = 85
 #: training views shown as frustums with a thumbnail (beyond this, frustums only); thumbnails' longer side
 MAX_THUMBNAILS, THUMBNAIL_SIZE = 100, 64
 CAMERA_PATH_DIR = "camera_paths"
+
+
+SERVER_START_TIMEOUT_S = 30.0
+"""how long the viewer waits for viser's server to listen (it binds in a thread of its own, and when that thread dies,
+on a bad port or host, viser's constructor waits for ever)"""
+
+
+def start_server(viser, host: str, port: int, timeout: float = SERVER_START_TIMEOUT_S):
+    """A ``viser.ViserServer`` listening on ``host``:``port`` (the next free port when taken), or a one-line
+    :class:`UserError` within ``timeout`` seconds: a port outside 0-65535, a host this machine cannot bind, a server
+    that does not come up."""
+    if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
+        raise UserError(f"the viewer's port {port!r} is not a port number (0-65535; 0 picks a free one): pass another "
+                        "--port / --viewer.port")
+    try:  # viser takes a host it cannot bind for a taken port and tries the next ones: ask the system first
+        with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as probe:
+            probe.bind((host, 0))
+    except OSError as exc:
+        raise UserError(f"the viewer cannot listen on host {host!r} ({exc.strerror or exc}): pass an address of this "
+                        "machine with --host / --viewer.host (127.0.0.1, or 0.0.0.0 for every interface)") from exc
+    built: dict[str, Any] = {}
+
+    def build() -> None:
+        try:
+            built["server"] = viser.ViserServer(host=host, port=port, verbose=False)
+        except Exception as exc:  # noqa: BLE001  (reported below as the user's bad host or port)
+            built["error"] = exc
+
+    def keep_thread_error(args) -> None:  # viser's serving thread dying on bind: its error, not its traceback
+        built.setdefault("error", args.exc_value)
+
+    previous_hook, threading.excepthook = threading.excepthook, keep_thread_error
+    try:
+        thread = threading.Thread(target=build, name="viser-start", daemon=True)
+        thread.start()
+        deadline = time.monotonic() + timeout
+        while thread.is_alive() and "error" not in built and time.monotonic() < deadline:
+            thread.join(0.1)
+    finally:
+        threading.excepthook = previous_hook
+    if "server" in built:
+        return built["server"]
+    error = built.get("error")
+    why = f"{type(error).__name__}: {error}" if error is not None else f"no answer within {timeout:.0f} s"
+    raise UserError(f"the viewer could not serve on {host}:{port} ({why}): check --host/--port "
+                    "(--viewer.host/--viewer.port in kc-train)")
 
 
 def import_viser():
@@ -99,7 +146,7 @@ class Viewer(RecordSink):
         if initial_camera is None and self.train_cameras is not None and len(self.train_cameras):
             initial_camera = self.train_cameras[0]
         self.initial_camera = initial_camera
-        self.server = viser.ViserServer(host=config.host, port=config.port, verbose=False)
+        self.server = start_server(viser, config.host, config.port)
         self.url = f"http://{config.host}:{self.server.get_port()}"
         self._lock = threading.Lock()
         self._dirty: set[int] = set()
