@@ -21,23 +21,13 @@ from typing import Sequence
 import numpy as np
 
 from kc_splatfacto.analysis.figures import pyplot, save_figure
-from kc_splatfacto.analysis.report import TIME_KEYS, format_mean_interval, mean_interval
+from kc_splatfacto.analysis.report import TIME_KEYS, format_mean_interval, mean_interval, paired_difference
 
 POOLED = "pooled"
 """the scene name of the curve over every scene's pairs"""
-#: metric -> (label of its paired difference, how the difference is taken)
-DIFFERENCES = {
-    "psnr": ("ΔPSNR (dB)", "absolute"),
-    "ssim": ("ΔSSIM (%)", "relative"),
-    "lpips": ("ΔLPIPS-alex (%)", "relative"),
-    "lpips_vgg": ("ΔLPIPS-VGG (%)", "relative"),
-}
+#: metric -> the label of its paired difference (:func:`~kc_splatfacto.analysis.report.paired_difference`)
+DIFFERENCES = {"psnr": "ΔPSNR (dB)", "ssim": "ΔSSIM (%)", "lpips": "ΔLPIPS-alex (%)", "lpips_vgg": "ΔLPIPS-VGG (%)"}
 ALONG_TRAINING_METRICS = ("psnr", "ssim", "lpips_vgg", "lpips")
-
-
-def difference(value: float, base: float, kind: str) -> float:
-    """``value - base`` (absolute) or ``100 (value - base) / |base|`` (relative)."""
-    return value - base if kind == "absolute" else 100.0 * (value - base) / abs(base)
 
 
 def paired_along_training(rows: Sequence[dict], baseline: str, metric: str = "psnr",
@@ -55,7 +45,6 @@ def paired_along_training(rows: Sequence[dict], baseline: str, metric: str = "ps
     """
     if metric not in DIFFERENCES:
         raise ValueError(f"metric must be one of {sorted(DIFFERENCES)}, got '{metric}'")
-    kind = DIFFERENCES[metric][1]
     index = {(r["scene"], r["method"], r["seed"], r["step"]): r for r in rows if r.get(metric) is not None}
     steps_of: dict[tuple, set[int]] = {}  # (scene, method, seed) -> the steps it evaluated
     for scene, method, seed, step in index:
@@ -72,19 +61,20 @@ def paired_along_training(rows: Sequence[dict], baseline: str, metric: str = "ps
         for scene, group in groups:
             steps = sorted(set.intersection(*(steps_of[(scene, method, seed)] & steps_of[(scene, baseline, seed)]
                                               for scene, seed in group)))
-            curve = _curve(index, method, baseline, metric, kind, group, steps, time_key) if steps else None
+            curve = _curve(index, method, baseline, metric, group, steps, time_key) if steps else None
             if curve is not None:
                 curves.append({"method": method, "scene": scene, **curve})
     return curves
 
 
-def _curve(index: dict, method: str, baseline: str, metric: str, kind: str, pairs: list[tuple], steps: list[int],
+def _curve(index: dict, method: str, baseline: str, metric: str, pairs: list[tuple], steps: list[int],
            time_key: str) -> dict:
     columns: dict[str, list] = {name: [] for name in ("mean", "low", "high", "excludes_zero", "time", "baseline_time")}
     for step in steps:
         ours = [index[(scene, method, seed, step)] for scene, seed in pairs]
         theirs = [index[(scene, baseline, seed, step)] for scene, seed in pairs]
-        diffs = [difference(a[metric], b[metric], kind) for a, b in zip(ours, theirs)]
+        # (a relative difference to a baseline value of exactly 0 is undefined: that pair sits the step out)
+        diffs = [d for a, b in zip(ours, theirs) if (d := paired_difference(metric, a[metric], b[metric])) is not None]
         mean = float(np.mean(diffs))
         low, high = mean_interval(diffs) or (mean, mean)
         columns["mean"].append(mean)
@@ -130,7 +120,7 @@ def plot_along_training(curves: Sequence[dict], method: str, baseline: str, path
                     label = f"{curve['scene']} ({len(curve['pairs'])})"
                     ax.plot(x, curve["mean"], "-", color=colors[curve["scene"]], lw=1, alpha=0.8, label=label)
             ax.axhline(0.0, color="grey", lw=0.8)
-            ax.set_ylabel(f"{DIFFERENCES[metric][0]}\n{method} - {baseline}")
+            ax.set_ylabel(f"{DIFFERENCES[metric]}\n{method} - {baseline}")
             ax.grid(True, alpha=0.3)
         row[0].set_xlabel("training step")
         row[1].set_xlabel(TIME_KEYS[time_key])
@@ -140,6 +130,46 @@ def plot_along_training(curves: Sequence[dict], method: str, baseline: str, path
     axes[0][1].set_title("the same pairs (equal step) drawn at the mean training time of the method's runs there",
                          fontsize=9)
     return save_figure(fig, path, dpi=110)
+
+
+def plot_pooled_psnr(curves: Sequence[dict], baseline: str, path: str | Path,
+                     time_key: str = "train_cpu_s") -> Path | None:
+    """PNG of the study against training time: per method, its pooled PSNR curve of :func:`paired_along_training`
+    (every (scene, seed) pair; a one-scene study's scene curve) with its 95 % t band, at the mean training time the
+    method's runs had reached at each step (so a slower method's curve is shifted right), and the ratio of the mean
+    times at each step. None when nothing pairs."""
+    chosen = []
+    for method in dict.fromkeys(c["method"] for c in curves):
+        psnr = [c for c in curves if c["method"] == method and c["metric"] == "psnr"]
+        chosen += [c for c in psnr if c["scene"] == POOLED] or psnr[:1]
+    if not chosen:
+        return None
+    plt = pyplot()
+    fig, (ax, cost) = plt.subplots(1, 2, figsize=(12, 4.2))
+    for i, curve in enumerate(chosen):
+        color = plt.get_cmap("tab10")((i + 1) % 10)
+        scenes = sorted({p[0] for p in curve["pairs"]})
+        label = f"{curve['method']} ({len(curve['pairs'])} pairs, {len(scenes)} scenes)"
+        ax.plot(curve["time"], curve["mean"], "-o", ms=3, color=color, label=label)
+        ax.fill_between(curve["time"], curve["low"], curve["high"], color=color, alpha=0.2, lw=0)
+        cost.plot(curve["steps"], curve["time"] / curve["baseline_time"], "-o", ms=3, color=color,
+                  label=curve["method"])
+    ax.axhline(0.0, color="k", lw=0.8)
+    ax.set_xscale("log")
+    ax.set_xlabel(f"{TIME_KEYS[time_key]}, mean over the method's runs")
+    ax.set_ylabel(f"PSNR - {baseline} (dB, same scene and seed)")
+    ax.set_title("pooled over scenes: paired PSNR difference at equal step (same scene and seed; mean, 95 % t band\n"
+                 "over pairs), drawn at the mean training time the method's runs had reached at that step", fontsize=9)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    cost.axhline(1.0, color="k", lw=0.8)
+    cost.set_xlabel("training step")
+    cost.set_ylabel(f"mean time / {baseline}'s, same step")
+    cost.set_title(f"cost: ratio of the mean {TIME_KEYS[time_key].split(' (')[0]}s (not a mean of per-pair ratios)",
+                   fontsize=9)
+    cost.grid(True, alpha=0.3)
+    cost.legend(fontsize=8)
+    return save_figure(fig, path, dpi=120)
 
 
 # ----------------------------------------------------------------------------------------------- tables
@@ -164,7 +194,7 @@ def markdown_along_training(curves: Sequence[dict], baseline: str) -> str:
         metrics = [m for m in ALONG_TRAINING_METRICS if m in top]
         lines += [f"### {method} - {baseline} along training ({headline}, {len(top['psnr']['pairs'])} pairs; "
                   "paired at equal step; mean [95 % t]; bold: the interval excludes zero)", "",
-                  "| step | time ratio | " + " | ".join(DIFFERENCES[m][0] for m in metrics) + " |",
+                  "| step | time ratio | " + " | ".join(DIFFERENCES[m] for m in metrics) + " |",
                   "|---|---|" + "---|" * len(metrics)]
         psnr = top["psnr"]
         for i, step in enumerate(psnr["steps"]):
@@ -183,7 +213,7 @@ def markdown_along_training(curves: Sequence[dict], baseline: str) -> str:
                 hits = [f"{int(s)} ({float(m):+.{digits}f})" for s, m, hit in
                         zip(curve["steps"], curve["mean"], curve["excludes_zero"]) if hit]
                 end = f"{int(curve['steps'][-1])}: {_cell(curve, len(curve['steps']) - 1, digits)}"
-                lines.append(f"| {scene} | {DIFFERENCES[curve['metric']][0]} | {len(curve['pairs'])} | "
+                lines.append(f"| {scene} | {DIFFERENCES[curve['metric']]} | {len(curve['pairs'])} | "
                              f"{', '.join(hits) or 'none'} | {end} |")
         lines.append("")
     return "\n".join(lines)
@@ -191,8 +221,8 @@ def markdown_along_training(curves: Sequence[dict], baseline: str) -> str:
 
 def write_along_training(rows: Sequence[dict], out_dir: str | Path, baseline: str,
                          time_key: str = "train_cpu_s") -> dict[str, Path]:
-    """``along_training.md``, ``along_training.json`` and ``along_training_<method>.png`` under ``out_dir`` (nothing
-    when no method pairs with ``baseline``). Returns the paths by name."""
+    """``along_training.md``, ``along_training.json``, ``along_training_<method>.png`` and ``pooled_psnr_vs_time.png``
+    under ``out_dir`` (nothing when no method pairs with ``baseline``). Returns the paths by name."""
     curves = [c for metric in ALONG_TRAINING_METRICS for c in paired_along_training(rows, baseline, metric, time_key)]
     if not curves:
         return {}
@@ -206,4 +236,8 @@ def write_along_training(rows: Sequence[dict], out_dir: str | Path, baseline: st
         png = plot_along_training(curves, method, baseline, out_dir / f"along_training_{method}.png", time_key)
         if png is not None:
             paths[f"along_training_{method}"] = png
+    if any(r.get(time_key) is not None for r in rows):
+        pooled = plot_pooled_psnr(curves, baseline, out_dir / "pooled_psnr_vs_time.png", time_key)
+        if pooled is not None:
+            paths["plot_pooled"] = pooled
     return paths

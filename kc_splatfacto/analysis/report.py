@@ -248,80 +248,6 @@ def plot_metric_vs_time(
     return curves
 
 
-def paired_curves(rows: Sequence[dict], baseline: str, metric: str = "psnr", time_key: str = "train_cpu_s") -> list[dict]:
-    """Per method, the pooled paired difference to ``baseline`` at every evaluated step that all its pairs share.
-
-    Pairs are (scene, seed) where both the method and the baseline ran; at each step the difference is the method's
-    metric minus the baseline's at the same scene, seed and step (PSNR in dB, others as they are). Returns per
-    method: ``steps`` [T], ``mean`` [T] (over all pairs), ``low``/``high`` [T] (95 % t interval over pairs),
-    ``time`` and ``baseline_time`` [T] (mean ``time_key`` of the method's and the baseline's runs), ``pairs``.
-    """
-    index = {(r["scene"], r["method"], r["seed"], r["step"]): r for r in rows if r.get(metric) is not None}
-    out = []
-    for method in _ordered_methods(rows, baseline):
-        if method == baseline:
-            continue
-        pairs = sorted({(k[0], k[2]) for k in index if k[1] == method and any(
-            j[:3] == (k[0], baseline, k[2]) for j in index)})
-        if not pairs:
-            continue
-        steps = sorted(set.intersection(*(
-            {k[3] for k in index if (k[0], k[1], k[2]) == (scene, method, seed) and (scene, baseline, seed, k[3]) in index}
-            for scene, seed in pairs)))
-        if not steps:
-            continue
-        mean, low, high, time, base_time = [], [], [], [], []
-        for step in steps:
-            diffs = [index[(sc, method, se, step)][metric] - index[(sc, baseline, se, step)][metric] for sc, se in pairs]
-            mean.append(float(np.mean(diffs)))
-            interval = mean_interval(diffs) or (mean[-1], mean[-1])
-            low.append(interval[0])
-            high.append(interval[1])
-            times = [index[(sc, method, se, step)].get(time_key) for sc, se in pairs]
-            base_times = [index[(sc, baseline, se, step)].get(time_key) for sc, se in pairs]
-            time.append(_mean_or_nan(times))
-            base_time.append(_mean_or_nan(base_times))
-        out.append({"method": method, "metric": metric, "steps": np.array(steps), "mean": np.array(mean),
-                    "low": np.array(low), "high": np.array(high), "time": np.array(time),
-                    "baseline_time": np.array(base_time), "pairs": pairs})
-    return out
-
-
-def plot_pooled_vs_time(rows: Sequence[dict], baseline: str, path: str | Path, time_key: str = "train_cpu_s") -> Path | None:
-    """PNG of the pooled study against training time: per method, the paired PSNR difference to ``baseline``
-    (mean over every (scene, seed) pair, 95 % t band) at each evaluated step, drawn at the mean training time the
-    method's runs had reached at that step (so a slower method's curve is shifted right). None when nothing pairs."""
-    curves = paired_curves(rows, baseline, "psnr", time_key)
-    if not curves:
-        return None
-    plt = pyplot()
-    fig, (ax, cost) = plt.subplots(1, 2, figsize=(12, 4.2))
-    for i, curve in enumerate(curves):
-        color = plt.get_cmap("tab10")((i + 1) % 10)
-        scenes = sorted({p[0] for p in curve["pairs"]})
-        label = f"{curve['method']} ({len(curve['pairs'])} pairs, {len(scenes)} scenes)"
-        ax.plot(curve["time"], curve["mean"], "-o", ms=3, color=color, label=label)
-        ax.fill_between(curve["time"], curve["low"], curve["high"], color=color, alpha=0.2, lw=0)
-        ratio = curve["time"] / curve["baseline_time"]
-        cost.plot(curve["steps"], ratio, "-o", ms=3, color=color, label=curve["method"])
-    ax.axhline(0.0, color="k", lw=0.8)
-    ax.set_xscale("log")
-    ax.set_xlabel(f"{TIME_KEYS[time_key]}, mean over the method's runs")
-    ax.set_ylabel(f"PSNR - {baseline} (dB, same scene and seed)")
-    ax.set_title("pooled over scenes: paired PSNR difference at equal step (same scene and seed; mean, 95 % t band\n"
-                 "over pairs), drawn at the mean training time the method's runs had reached at that step", fontsize=9)
-    ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8)
-    cost.axhline(1.0, color="k", lw=0.8)
-    cost.set_xlabel("training step")
-    cost.set_ylabel(f"mean time / {baseline}'s, same step")
-    cost.set_title(f"cost: ratio of the mean {TIME_KEYS[time_key].split(' (')[0]}s (not a mean of per-pair ratios)",
-                   fontsize=9)
-    cost.grid(True, alpha=0.3)
-    cost.legend(fontsize=8)
-    return save_figure(fig, path, dpi=120)
-
-
 def lpips_networks(rows: Sequence[dict]) -> list[str]:
     """The LPIPS backbones the rows' values were measured with (normally one, 'alex')."""
     return sorted({row["lpips_net"] for row in rows if row.get("lpips") is not None and row.get("lpips_net")})
@@ -384,6 +310,12 @@ def _diff(a: float | None, b: float | None) -> float | None:
 
 def _rel_pct(a: float | None, b: float | None) -> float | None:
     return None if a is None or b is None or b == 0 else 100.0 * (a - b) / abs(b)
+
+
+def paired_difference(metric: str, value: float | None, base: float | None) -> float | None:
+    """A method's ``value`` of ``metric`` minus the baseline's ``base`` at the same scene and seed: PSNR in dB, every
+    other metric relative to the baseline (%); None when either is missing."""
+    return (_diff if metric == "psnr" else _rel_pct)(value, base)
 
 
 def _fmt(value: float | None, std: float | None, digits: int) -> str:
@@ -473,9 +405,8 @@ def paired_deltas(rows: Sequence[dict], baseline: str) -> list[dict]:
         entry: dict = {"scene": scene, "method": method, "seeds": seeds, "mixed_cpu_seeds": [
             s for s in seeds if _cpus_differ(finals[(scene, method, s)], finals[(scene, baseline, s)])]}
         for metric, key in PAIRED_METRICS.items():
-            delta = _diff if metric == "psnr" else _rel_pct
-            values = [delta(finals[(scene, method, s)].get(metric), finals[(scene, baseline, s)].get(metric))
-                      for s in seeds]
+            values = [paired_difference(metric, finals[(scene, method, s)].get(metric),
+                                        finals[(scene, baseline, s)].get(metric)) for s in seeds]
             entry[key] = values
             present = [v for v in values if v is not None]
             entry[f"{key}_mean"] = float(np.mean(present)) if present else None
@@ -618,10 +549,6 @@ def write_report(
             table += "\n" + markdown_pooled_table(pooled, baseline)
             paths["pooled"] = out_dir / "pooled.json"
             paths["pooled"].write_text(json.dumps({"paired": paired, "pooled": pooled}, indent=1))
-        if any(r.get("train_cpu_s") is not None for r in rows):
-            png = plot_pooled_vs_time(rows, baseline, out_dir / "pooled_psnr_vs_time.png")
-            if png is not None:
-                paths["plot_pooled"] = png
     paths["table"].write_text(table)
     for metric in METRICS:
         png = out_dir / f"{metric}_vs_time.png"
