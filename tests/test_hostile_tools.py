@@ -2,9 +2,11 @@
 (a tiny finished run, a tiny finished study), runs one command in-process and checks the exit code, that a user
 error is one line without a traceback holding the expected fragment, and the case's own property.
 
-Categories (the issue's): 2 hangs (fail within a bounded time), 3 silent wrong results in kc-bench and kc-eval,
-7 left from the second round (a run folder without a checkpoint). The issue's other categories (1 work lost,
-4 kc-process-data, 5 tracebacks, 6 unclear messages, 8 what a new user sees) have no case here yet.
+Categories (the issue's): 1 work lost (an older scene kept when its replacement fails), 2 hangs (fail within a
+bounded time), 3 silent wrong results in kc-bench and kc-eval, 4 silent wrong results in kc-process-data, 5
+tracebacks, 7 left from the second round (a run folder without a checkpoint). A logging backend failing mid-run
+(category 1) is tested in tests/engine/test_loggers.py (it needs a backend that fails); categories 6 (unclear
+messages) and 8 (what a new user sees) have no case here yet.
 """
 
 from __future__ import annotations
@@ -21,12 +23,14 @@ import pytest
 
 from kc_splatfacto.cli import bench
 from kc_splatfacto.cli import eval as kc_eval
+from kc_splatfacto.cli import process_data as kc_process_data
 from kc_splatfacto.cli import viewer as kc_viewer
 from kc_splatfacto.engine.config import load_config, save_config
 from kc_splatfacto.engine.trainer import Trainer
 from tests.training_utils import tiny_demo_config
 
-TOOLS = {"kc-bench": bench.entrypoint, "kc-eval": kc_eval.entrypoint, "kc-viewer": kc_viewer.entrypoint}
+TOOLS = {"kc-bench": bench.entrypoint, "kc-eval": kc_eval.entrypoint, "kc-viewer": kc_viewer.entrypoint,
+         "kc-process-data": kc_process_data.entrypoint}
 OVERRIDES = ["--set", "pipeline.model.steps_scale=0.02", "pipeline.model.num_downscales=0"]
 
 
@@ -73,6 +77,37 @@ def _without_scene(root: Path) -> None:
     save_config(config, root / "run" / "config.yml")
 
 
+def _photos(root: Path) -> None:
+    """Three photos of noise in root/photos (SfM finds no pair in them) and an older scene in root/scene."""
+    import cv2
+    import numpy as np
+
+    (root / "photos").mkdir()
+    for i in range(3):
+        noise = np.random.default_rng(i).integers(0, 256, (60, 80, 3), dtype=np.uint8)
+        assert cv2.imwrite(str(root / "photos" / f"{i}.jpg"), noise)
+    (root / "scene" / "sparse" / "0").mkdir(parents=True)
+    (root / "scene" / "sparse" / "0" / "cameras.txt").write_text("the older scene")
+
+
+def _truncated_photo(root: Path) -> None:
+    _photos(root)
+    data = (root / "photos" / "2.jpg").read_bytes()
+    (root / "photos" / "2.jpg").write_bytes(data[: len(data) // 2])
+
+
+def _photos_in_a_subfolder(root: Path) -> None:
+    _photos(root)
+    (root / "photos" / "DCIM").mkdir()
+    for photo in (root / "photos").glob("*.jpg"):
+        photo.replace(root / "photos" / "DCIM" / photo.name)
+
+
+def _older_scene_kept(root: Path) -> None:
+    assert (root / "scene" / "sparse" / "0" / "cameras.txt").read_text() == "the older scene"
+    assert sorted(p.name for p in root.iterdir() if p.name.startswith(".")) == []
+
+
 def _final_step_is_the_budget(step: int) -> Callable[[Path], None]:
     def check(root: Path) -> None:
         with (root / "study" / "evals.csv").open() as handle:
@@ -82,7 +117,13 @@ def _final_step_is_the_budget(step: int) -> Callable[[Path], None]:
     return check
 
 
+PROCESS = ["images", "--data"]
+
 CASES = [
+    # 1: work lost
+    Case("process-data-overwrite-that-fails", 1, "kc-process-data", lambda root: [
+        *PROCESS, str(root / "photos"), "--output-dir", str(root / "scene"), "--overwrite"], 2,
+         "no initial image pair found", edit=_photos, check=_older_scene_kept),
     # 2: hangs
     Case("viewer-port-out-of-range", 2, "kc-viewer", lambda root: ["--load-config", str(root / "run" / "config.yml"),
                                                                   "--port", "70000"], 2, "is not a port number"),
@@ -105,6 +146,17 @@ CASES = [
         str(root / "other")], 2, "did you mean splatfacto"),
     Case("eval-config-without-a-scene", 3, "kc-eval", lambda root: ["--load-config", str(root / "run" / "config.yml")],
          2, "names no scene", edit=_without_scene),
+    # 4: silent wrong results in kc-process-data
+    Case("process-data-truncated-photo", 4, "kc-process-data", lambda root: [
+        *PROCESS, str(root / "photos"), "--output-dir", str(root / "new")], 2, "2.jpg does not decode completely",
+         edit=_truncated_photo),
+    Case("process-data-photos-in-a-subfolder", 4, "kc-process-data", lambda root: [
+        *PROCESS, str(root / "photos"), "--output-dir", str(root / "new")], 2, "photos were found in subfolders",
+         edit=_photos_in_a_subfolder),
+    # 5: tracebacks
+    Case("process-data-output-dir-is-a-file", 5, "kc-process-data", lambda root: [
+        *PROCESS, str(root / "photos"), "--output-dir", str(root / "run" / "config.yml")], 2,
+         "is a file, not a folder", edit=_photos),
     # 7: left from the second round
     Case("eval-run-without-a-checkpoint", 7, "kc-eval", lambda root: ["--load-config", str(root / "run" / "config.yml")],
          2, "no checkpoint", edit=_without_checkpoints),

@@ -133,9 +133,46 @@ def list_photos(folder: Path) -> list[str]:
     if len(names) < MIN_IMAGES:
         raise ProcessDataError(
             f"--data {folder} holds {len(names)} photo(s) ({', '.join(SFM_IMAGE_EXTENSIONS)}); structure from motion "
-            f"needs at least {MIN_IMAGES} overlapping photos of the scene"
+            f"needs at least {MIN_IMAGES} overlapping photos of the scene{_photos_below(folder)}"
         )
     return names
+
+
+def _photos_below(folder: Path) -> str:
+    """A hint naming the subfolders of ``folder`` that hold photos (photos are read from ``--data`` itself only)."""
+    found = []
+    for sub in sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith(".")):
+        count = sum(1 for f in sub.rglob("*") if f.is_file() and f.suffix.lower() in SFM_IMAGE_EXTENSIONS)
+        if count:
+            found.append(f"{sub} ({count})")
+    if not found:
+        return ""
+    return f"; photos were found in subfolders: {', '.join(found[:3])}: pass that folder as --data"
+
+
+def check_photos(folder: Path, names: list[str]) -> None:
+    """An error naming the file for a photo that does not decode completely (a truncated JPEG: OpenCV, and so
+    COLMAP's reader, fills the missing part with grey without a word) and for two byte-identical photos (one could
+    become a training view and its twin a test view: a test view seen in training)."""
+    import hashlib
+
+    from kc_splatfacto.data.base import DataParserError
+    from kc_splatfacto.data.images import check_complete
+
+    seen: dict[str, str] = {}
+    for name in names:
+        path = folder / name
+        try:
+            check_complete(path)
+        except DataParserError as exc:
+            raise ProcessDataError(f"{exc}; kc-process-data reads every photo in --data {folder}") from exc
+        digest = hashlib.sha256(path.read_bytes()).hexdigest()
+        if digest in seen:
+            raise ProcessDataError(
+                f"photos {folder / seen[digest]} and {path} are the same file (byte for byte): remove one, or the "
+                "same view could be a training and a test view"
+            )
+        seen[digest] = name
 
 
 def choose_matching(method: str, num_images: int) -> str:
@@ -418,30 +455,62 @@ def write_scene(model, photos: Path, scene: Path, work: Path) -> str:
     return "PINHOLE"
 
 
+SCENE_PARTS = ("images", "sparse", "colmap", "train_list.txt", "test_list.txt")
+"""what kc-process-data writes in --output-dir (and replaces there with --overwrite)"""
+
+
 def prepare_output(scene: Path, photos: Path, overwrite: bool) -> None:
-    """An error when ``scene`` already holds a scene (unless ``overwrite``) or is the photo folder itself."""
+    """An error when ``scene`` already holds a scene (unless ``overwrite``) or is the photo folder itself. Nothing is
+    deleted here: the new scene is built beside it and replaces it only once complete (:func:`publish_scene`)."""
     scene = Path(scene)
     if scene.resolve() == Path(photos).resolve() or (scene / "images").resolve() == Path(photos).resolve():
         raise ProcessDataError(
             f"--output-dir {scene} would write over the photos in {photos}: choose another output folder"
         )
+    if scene.exists() and not scene.is_dir():
+        raise ProcessDataError(f"--output-dir {scene} is a file, not a folder: choose a folder for the scene")
     existing = [name for name in ("images", "sparse", "colmap") if (scene / name).exists()]
     if existing and not overwrite:
         raise ProcessDataError(
             f"--output-dir {scene} already holds {', '.join(existing)}: choose an empty folder or pass --overwrite"
         )
-    for name in existing:
-        shutil.rmtree(scene / name)
-    for name in ("train_list.txt", "test_list.txt"):
-        if overwrite:
-            (scene / name).unlink(missing_ok=True)
+
+
+def staging_folder(scene: Path) -> Path:
+    """Where a scene is built before it replaces ``scene``'s parts: a hidden sibling (same file system, so the
+    replacement is a rename), emptied first when an earlier attempt left it."""
+    staging = scene.parent / f".{scene.name}.kc-process-data.partial"
+    shutil.rmtree(staging, ignore_errors=True)
+    try:
+        staging.mkdir(parents=True)
+    except OSError as exc:
+        raise ProcessDataError(f"--output-dir {scene}: cannot write in {scene.parent} ({exc.strerror}): choose a "
+                               "folder you can write to") from exc
+    return staging
+
+
+def publish_scene(staging: Path, scene: Path) -> None:
+    """Replace ``scene``'s parts by the complete new ones in ``staging``: the old parts are moved into the staging
+    folder first (deleted with it), so an error here leaves the old scene or the new one, never neither."""
     scene.mkdir(parents=True, exist_ok=True)
+    replaced = staging / "replaced"
+    replaced.mkdir()
+    for name in SCENE_PARTS:
+        if (scene / name).exists():
+            (scene / name).replace(replaced / name)
+    try:
+        for name in SCENE_PARTS:
+            if (staging / name).exists():
+                (staging / name).replace(scene / name)
+    except OSError:
+        for name in SCENE_PARTS:
+            if (replaced / name).exists() and not (scene / name).exists():
+                (replaced / name).replace(scene / name)
+        raise
 
 
 def process_images(config: ProcessImagesConfig, progress: Callable[[str], None] = print) -> ProcessResult:
     """Photos -> a COLMAP scene (see the module docstring); ``progress`` gets one line per stage and step."""
-    import pycolmap
-
     photos = Path(config.data)
     scene = Path(config.output_dir)
     names = list_photos(photos)
@@ -455,7 +524,23 @@ def process_images(config: ProcessImagesConfig, progress: Callable[[str], None] 
         )
     if config.max_image_size < 64:
         raise ProcessDataError(f"--max-image-size must be at least 64 pixels, got {config.max_image_size}")
+    check_photos(photos, names)
     prepare_output(scene, photos, config.overwrite)
+    staging = staging_folder(scene)
+    try:
+        result = _process_into(staging, photos, names, config, progress)
+        publish_scene(staging, scene)
+    finally:  # also on an error or Ctrl-C: the old scene untouched, nothing half-written left behind
+        shutil.rmtree(staging, ignore_errors=True)
+    result.scene = scene
+    return result
+
+
+def _process_into(scene: Path, photos: Path, names: list[str], config: ProcessImagesConfig,
+                  progress: Callable[[str], None]) -> ProcessResult:
+    """The stages of :func:`process_images`, writing the scene into ``scene`` (the staging folder)."""
+    import pycolmap
+
     work = scene / "colmap"
     work.mkdir()
     database = work / "database.db"

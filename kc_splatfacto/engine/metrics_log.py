@@ -25,6 +25,8 @@ from typing import Any, TextIO
 
 from tqdm import tqdm
 
+from kc_splatfacto.errors import UserError
+
 
 def _jsonable(value: Any) -> Any:
     if isinstance(value, float) and not math.isfinite(value):
@@ -38,28 +40,49 @@ def _jsonable(value: Any) -> Any:
     return value
 
 
+class LoggingFailedError(UserError, OSError):
+    """Writing the run's records failed (``metrics.jsonl`` or a logging backend): the run stopped with a checkpoint."""
+
+
 class MetricsWriter:
     """Appends records to ``metrics.jsonl``, flushed line by line (a crash loses at most the line being written),
     then hands each to the ``sinks`` (tensorboard, wandb, a viewer: objects with ``write(record)`` and ``close()``)
-    as the JSON holds it."""
+    as the JSON holds it.
+
+    A failure to write (the file made unwritable, a disk full, a backend raising) does not raise in the middle of a
+    training step: the first one is kept in ``failure`` and writing stops; the trainer checks it after each step,
+    saves a checkpoint and stops with one line (``LoggingFailedError``)."""
 
     def __init__(self, path: Path, sinks: Sequence[Any] = ()):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = self.path.open("a")
         self.sinks = list(sinks)
+        self.failure: str | None = None
 
     def write(self, record: dict[str, Any]) -> None:
+        if self.failure is not None:
+            return
         record = _jsonable(record)
-        self._file.write(json.dumps(record, allow_nan=False) + "\n")
-        self._file.flush()
+        try:
+            self._file.write(json.dumps(record, allow_nan=False) + "\n")
+            self._file.flush()
+        except OSError as exc:
+            self.failure = f"writing {self.path} failed ({exc.strerror or exc})"
+            return
         for sink in self.sinks:
-            sink.write(record)
+            try:
+                sink.write(record)
+            except Exception as exc:  # any backend's error: the run must stop with its state saved, not crash
+                self.failure = f"the logging backend {type(sink).__name__} failed ({type(exc).__name__}: {exc})"
+                return
 
     def close(self) -> None:
-        self._file.close()
-        for sink in self.sinks:
-            sink.close()
+        for closing in (self._file, *self.sinks):
+            try:
+                closing.close()
+            except Exception as exc:  # after a failure, or a backend failing at its end: said, never masking
+                self.failure = self.failure or f"closing {type(closing).__name__} failed ({type(exc).__name__}: {exc})"
 
 
 def read_metrics(path: str | Path) -> list[dict[str, Any]]:

@@ -39,7 +39,7 @@ from kc_splatfacto.engine.config_file import save_config
 from kc_splatfacto.engine.evaluation import FINAL_LPIPS_NETS
 from kc_splatfacto.engine.gradient_shares import gradient_shares
 from kc_splatfacto.engine.loggers import check_backends, logging_sinks
-from kc_splatfacto.engine.metrics_log import MetricsWriter, ProgressBar
+from kc_splatfacto.engine.metrics_log import LoggingFailedError, MetricsWriter, ProgressBar
 from kc_splatfacto.engine.optimizers import OptimizersConfig
 from kc_splatfacto.engine.pipeline import Pipeline, PipelineConfig
 from kc_splatfacto.engine.run_guard import (
@@ -457,6 +457,8 @@ class Trainer:
                     self.save_checkpoint(step)
                 self.last_losses = losses
                 run_callbacks(self.callbacks, step, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
+                if self.writer.failure is not None:  # the step is whole: its state is saved, then one line
+                    self._stop_for_logging(step)
             if self._stop_requested and step < cfg.max_num_iterations:
                 self.interrupted = True
                 path = self.save_checkpoint(step)
@@ -470,6 +472,14 @@ class Trainer:
             restore_handlers(previous_handlers)
             self.writer.close()
         return self.run_dir
+
+    def _stop_for_logging(self, step: int) -> None:
+        failure = self.writer.failure
+        path = self.save_checkpoint(step)
+        raise LoggingFailedError(
+            f"{failure} at step {step}: training stopped, its state saved in {path}; fix the cause and resume with "
+            f"--load-dir {path.parent} (the records of the steps after the failure are not in metrics.jsonl)"
+        )
 
     def _log_gradient_shares(self, step: int, loss_dict: dict[str, torch.Tensor], image: torch.Tensor) -> None:
         every = self.config.logging.steps_per_gradient_shares

@@ -249,3 +249,112 @@ def test_existing_scene_is_not_overwritten(tmp_path, capsys):
     code = kc_process_data.entrypoint(["images", "--data", str(photos), "--output-dir", str(tmp_path / "out")])
     assert code == 2
     assert "already holds sparse" in one_error_line(capsys)
+
+
+# ------------------------------------------------------------------------- issue 37: bad photos, work kept
+def test_a_failed_overwrite_keeps_the_old_scene(tmp_path, capsys):
+    """--overwrite on a scene, then SfM fails (photos of noise): the old scene is as it was, nothing half-written."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        write_noise(photos / f"{i}.png", i, size=(60, 80))
+    old = tmp_path / "out"
+    for part, text in (("sparse/0/cameras.txt", "old cameras"), ("images/a.png", "old image"),
+                       ("train_list.txt", "a.png\n")):
+        (old / part).parent.mkdir(parents=True, exist_ok=True)
+        (old / part).write_text(text)
+    before = {p.relative_to(old): p.read_bytes() for p in old.rglob("*") if p.is_file()}
+    code = kc_process_data.entrypoint(["images", "--data", str(photos), "--output-dir", str(old), "--overwrite"])
+    assert code == 2 and "no initial image pair found" in one_error_line(capsys)
+    assert {p.relative_to(old): p.read_bytes() for p in old.rglob("*") if p.is_file()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "photos"]  # no staging folder left
+
+
+def test_publishing_replaces_every_part_and_an_error_midway_keeps_the_old_ones(tmp_path, monkeypatch):
+    """The last step of a successful --overwrite: the new parts replace the old, a part the new scene lacks (its
+    split lists) is gone too; a rename that fails midway puts the old parts back."""
+    from kc_splatfacto.data import sfm
+
+    def build(root, parts):
+        for part, text in parts.items():
+            (root / part).parent.mkdir(parents=True, exist_ok=True)
+            (root / part).write_text(text)
+
+    def files(root):
+        return {str(p.relative_to(root)): p.read_text() for p in sorted(root.rglob("*")) if p.is_file()}
+
+    old = {"images/a.png": "old a", "images/stale.png": "old", "sparse/0/cameras.txt": "old", "train_list.txt": "a"}
+    new = {"images/a.png": "new a", "sparse/0/cameras.txt": "new", "colmap/database.db": "new"}
+    scene, staging = tmp_path / "scene", tmp_path / "staging"
+    build(scene, old)
+    build(staging, new)
+    (scene / "notes.txt").write_text("the user's own file")
+    sfm.publish_scene(staging, scene)
+    assert files(scene) == {**new, "notes.txt": "the user's own file"}
+
+    scene2, staging2 = tmp_path / "scene2", tmp_path / "staging2"
+    build(scene2, old)
+    build(staging2, new)
+    real_replace = Path.replace
+
+    def failing_replace(self, target):
+        if Path(self).parent == staging2 and Path(self).name == "sparse":
+            raise OSError(28, "No space left on device")
+        return real_replace(self, target)
+
+    monkeypatch.setattr(Path, "replace", failing_replace)
+    with pytest.raises(OSError):
+        sfm.publish_scene(staging2, scene2)
+    monkeypatch.undo()
+    assert files(scene2)["sparse/0/cameras.txt"] == "old" and files(scene2)["train_list.txt"] == "a"
+
+
+def test_a_truncated_photo_is_named_before_any_work(tmp_path, capsys):
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        write_noise(photos / f"{i}.png", i, size=(60, 80))
+    import cv2
+
+    rng = np.random.default_rng(7)
+    assert cv2.imwrite(str(photos / "cut.jpg"), rng.integers(0, 256, (60, 80, 3), dtype=np.uint8))
+    data = (photos / "cut.jpg").read_bytes()
+    (photos / "cut.jpg").write_bytes(data[: len(data) // 2])
+    code = kc_process_data.entrypoint(["images", "--data", str(photos), "--output-dir", str(tmp_path / "out")])
+    assert code == 2
+    line = one_error_line(capsys)
+    assert str(photos / "cut.jpg") in line and "truncated" in line
+    assert not (tmp_path / "out").exists()
+
+
+def test_byte_identical_photos_are_refused(tmp_path, capsys):
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        write_noise(photos / f"{i}.png", i, size=(60, 80))
+    shutil.copyfile(photos / "1.png", photos / "1 copy.png")
+    code = kc_process_data.entrypoint(["images", "--data", str(photos), "--output-dir", str(tmp_path / "out")])
+    assert code == 2
+    line = one_error_line(capsys)
+    assert "1 copy.png" in line and "1.png" in line and "same file" in line
+
+
+def test_photos_in_a_subfolder_are_pointed_to(tmp_path, capsys):
+    photos = tmp_path / "photos"
+    (photos / "DCIM").mkdir(parents=True)
+    for i in range(4):
+        write_noise(photos / "DCIM" / f"{i}.png", i, size=(60, 80))
+    code = kc_process_data.entrypoint(["images", "--data", str(photos), "--output-dir", str(tmp_path / "out")])
+    assert code == 2
+    line = one_error_line(capsys)
+    assert "holds 0 photo(s)" in line and f"{photos / 'DCIM'} (4)" in line and "pass that folder as --data" in line
+
+
+def test_an_output_dir_that_is_a_file_is_one_line(tmp_path, capsys):
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        write_noise(photos / f"{i}.png", i, size=(60, 80))
+    (tmp_path / "out").write_text("not a folder")
+    code = kc_process_data.entrypoint(["images", "--data", str(photos), "--output-dir", str(tmp_path / "out")])
+    assert code == 2 and "is a file, not a folder" in one_error_line(capsys)

@@ -140,3 +140,80 @@ def test_missing_backend_refused_before_setup(monkeypatch, tmp_path):
     config.logging.tensorboard = True
     with pytest.raises(UserError, match="tensorboard"):
         Trainer(config).setup()
+
+
+# ------------------------------------------------------------------------- issue 37: a backend failing mid-run
+class _FailingSink:
+    """A logging backend that raises on the record of step ``at`` (a wandb writer losing its folder, say)."""
+
+    def __init__(self, at: int):
+        self.at = at
+
+    def write(self, record):
+        if record["kind"] == "train" and record["step"] >= self.at:
+            raise RuntimeError("backend lost its connection")
+
+    def close(self):
+        pass
+
+
+def _final_state(run_dir):
+    from kc_splatfacto.engine.checkpoints import list_checkpoints, load_checkpoint
+
+    ckpt = load_checkpoint(list_checkpoints(run_dir / "nerfstudio_models")[-1])
+    assert ckpt["step"] == 30
+    return dict(ckpt["model"])
+
+
+def test_a_backend_failing_mid_run_stops_with_a_checkpoint_and_the_resume_loses_nothing(tmp_path):
+    """A failure of logging, not of the training math: the state of the last whole step is saved, one line says
+    so, and resuming from it ends where an uninterrupted run ends, bit for bit."""
+    import torch
+
+    from kc_splatfacto.engine.metrics_log import LoggingFailedError
+
+    whole = tiny_demo_config("splatfacto", tmp_path / "whole", iterations=30)
+    whole_dir = Trainer(whole).train()
+
+    config = tiny_demo_config("splatfacto", tmp_path / "cut", iterations=30)
+    trainer = Trainer(config)
+    trainer.add_callbacks(sinks=[_FailingSink(at=20)])
+    with pytest.raises(LoggingFailedError) as caught:
+        trainer.train()
+    message = str(caught.value)
+    assert "_FailingSink failed (RuntimeError: backend lost its connection) at step 20" in message
+    assert "\n" not in message and "--load-dir" in message
+    assert isinstance(caught.value, UserError)  # the CLI prints it as one line
+    cut_dir = trainer.run_dir
+    assert (cut_dir / "nerfstudio_models" / "step-000000020.ckpt").is_file()
+
+    resumed = tiny_demo_config("splatfacto", tmp_path / "cut", iterations=30)
+    resumed.load_dir = cut_dir / "nerfstudio_models"
+    Trainer(resumed).train()
+    a, b = _final_state(whole_dir), _final_state(cut_dir)
+    assert any(k.endswith("means") for k in a) and a.keys() == b.keys()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_metrics_jsonl_that_cannot_be_written_stops_the_run_with_one_line(tmp_path, monkeypatch, capsys):
+    """The disk fills under metrics.jsonl (root ignores file modes, so the write itself is made to fail): kc-train
+    exits 2 with one line, and the checkpoint of the step is there."""
+    from kc_splatfacto.cli.train import entrypoint
+    from kc_splatfacto.engine import metrics_log
+
+    real_write = metrics_log.MetricsWriter.write
+
+    def full_disk(self, record):
+        if record.get("step", 0) >= 10 and record["kind"] == "train":
+            def write(text):
+                raise OSError(28, "No space left on device")
+            self._file.write = write
+        real_write(self, record)
+
+    monkeypatch.setattr(metrics_log.MetricsWriter, "write", full_disk)
+    code = entrypoint(["splatfacto", "--data", "demo", "--output-dir", str(tmp_path), "--max-num-iterations", "40",
+                       "--logging.steps-per-log", "10", "--logging.progress-bar", "False"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert "No space left on device" in err and "at step 10" in err
+    assert len(list(tmp_path.rglob("step-000000010.ckpt"))) == 1
