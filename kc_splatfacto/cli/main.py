@@ -11,6 +11,7 @@ import errno
 import os
 import re
 import sys
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -32,6 +33,9 @@ def run_cli(prog: str, main: Callable[[list[str]], int], argv: Sequence[str] | N
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = debug_requested(argv)
     argv = [a for a in argv if a != DEBUG_FLAG]
+    shown = warnings.showwarning
+    if not debug:  # a warning is one line for the user (`prog: warning: ...`), not a file:line and a source line
+        warnings.showwarning = _one_line_warning(prog)
     try:
         return main(argv)
     except UserError as exc:  # first: a user error may also be an OSError (CheckpointNotFoundError)
@@ -51,6 +55,17 @@ def run_cli(prog: str, main: Callable[[list[str]], int], argv: Sequence[str] | N
         print(f"{prog}: error: could not write {exc.filename or 'a file'} ({exc.strerror}): free space on that disk "
               "and run the command again", file=sys.stderr)
         return USER_ERROR_EXIT
+    finally:
+        warnings.showwarning = shown
+
+
+def _one_line_warning(prog: str) -> Callable[..., None]:
+    def show(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ARG001
+        text = " ".join(str(message).split())
+        kind = "" if category in (UserWarning, RuntimeWarning) else f" ({category.__name__})"
+        print(f"{prog}: warning{kind}: {text}", file=file or sys.stderr)
+
+    return show
 
 
 #: how many close names a "did you mean" offers, and how close they must be (difflib's ratio)

@@ -193,3 +193,23 @@ def test_zero_seed_points_say_so_with_the_count(castle_p30, tmp_path, capsys):
         "(--pipeline.model.num-random sets the count)"
     ]
     assert trainer.model.num_points == 500
+
+
+def test_a_warning_is_one_line_naming_the_tool(tmp_path, capsys):
+    """What a new user sees (issue 37, category 8): the demo's note that a 30x40 image holds only 2 of the 3 db3
+    levels is one line `kc-train: warning: ...`, not Python's file:line and source line."""
+    import warnings
+
+    from kc_splatfacto.cli.train import entrypoint
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("default")
+        before = warnings.showwarning
+        code = entrypoint(["kc-splatfacto", "--data", "demo", "--output-dir", str(tmp_path), "--max-num-iterations",
+                           "2", "--logging.progress-bar", "False"])
+        assert warnings.showwarning is before  # put back
+    err = capsys.readouterr().err
+    assert code == 0
+    lines = [line for line in err.splitlines() if "supports only" in line]
+    assert len(lines) == 1 and lines[0].startswith("kc-train: warning: FrequencyLoss: a 30x40 image supports only 2"), err
+    assert ".py:" not in err and "warnings.warn" not in err
