@@ -19,13 +19,20 @@ import json
 import math
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, TextIO
 
 from tqdm import tqdm
 
 from kc_splatfacto.errors import UserError
+
+POSTFIX_EVERY = 10
+"""steps between two updates of the terminal bar's text (rate, ETA, loss)"""
+
+
+def _value(loss: float | Callable[[], float | None] | None) -> float | None:
+    return loss() if callable(loss) else loss
 
 
 def _jsonable(value: Any) -> Any:
@@ -134,7 +141,7 @@ class ProgressBar:
             interactive = bool(isatty and isatty())
         self.interactive = interactive
         self._warm: tuple[int, float] | None = None  # (step, time) once the warm-up steps are done
-        self._last_line_step = start
+        self._last_line_step = self._last_postfix_step = start
         self._bar = None
         if enabled and interactive:
 
@@ -160,12 +167,19 @@ class ProgressBar:
         loss_text = f"{loss:.4f}" if loss is not None and math.isfinite(loss) else "nan"
         return f"{rate_text}, ETA {format_duration(eta)}, loss {loss_text}, {gaussian_count:,} GS"
 
-    def update(self, step: int, loss: float | None, gaussian_count: int, force: bool = False) -> None:
+    def update(self, step: int, loss: float | Callable[[], float | None] | None, gaussian_count: int,
+               force: bool = False) -> None:
+        """``loss``: the value, or a function giving it, called only when the bar shows it (every
+        ``POSTFIX_EVERY`` steps on a terminal, on each line otherwise): reading a loss from a GPU is a host
+        synchronisation, which a training step should not pay for a display."""
         if not self.enabled:
             return
-        text = self.describe(step, loss, gaussian_count)
         if self._bar is not None:
-            self._bar.set_postfix_str(text, refresh=False)
+            if force or step - self._last_postfix_step >= POSTFIX_EVERY:
+                self._last_postfix_step = step
+                self._bar.set_postfix_str(self.describe(step, _value(loss), gaussian_count), refresh=False)
+            else:
+                self.rate_and_eta(step)  # the ETA's warm-up point is taken at its step all the same
             self._bar.update(step - self._bar.n)
             if force:
                 self._bar.refresh()
@@ -174,6 +188,7 @@ class ProgressBar:
             return
         if force or step - self._last_line_step >= self.line_every or step == self.total:
             self._last_line_step = step
+            text = self.describe(step, _value(loss), gaussian_count)
             self.stream.write(f"step {step}/{self.total} ({100 * step / max(self.total, 1):.0f}%): {text}\n")
             self.stream.flush()
 

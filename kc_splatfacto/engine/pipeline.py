@@ -62,25 +62,21 @@ class Pipeline:
 
     def get_train_loss_dict(
         self, step: int, lap: Callable[[str], None] | None = None
-    ) -> tuple[dict[str, Any], dict[str, torch.Tensor] | None, dict[str, Any]]:
+    ) -> tuple[dict[str, Any], dict[str, torch.Tensor], dict[str, Any]]:
         """Render the next training view and its losses.
 
         Args:
             step: 0-based index of the optimization step being taken (every schedule reads it).
             lap: called with "render" after rendering and "losses" after the losses (phase timing).
         Returns:
-            (outputs, loss_dict, batch); loss_dict is None when the render is not finite (the step must be skipped:
-            no loss of a non-finite image is meaningful).
+            (outputs, loss_dict, batch). A non-finite render gives non-finite losses, not an error: the trainer checks
+            the loss and the gradients once after backward (one host synchronisation per step, not one per check).
         """
         self.model.step = step
         batch = self.datamanager.next_train()
         outputs = self.model.get_outputs(batch["camera"])
         if lap is not None:
             lap("render")
-        rgb = outputs["rgb"]
-        assert rgb is not None  # get_outputs always renders colours
-        if not bool(torch.isfinite(rgb).all()):
-            return outputs, None, batch
         loss_dict = self.model.get_loss_dict(outputs, batch)
         if lap is not None:
             lap("losses")

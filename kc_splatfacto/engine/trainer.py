@@ -19,11 +19,12 @@ from __future__ import annotations
 
 import copy
 import datetime
+import functools
 import math
 import random
 import time
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
@@ -147,6 +148,32 @@ def _set_up(value: _T | None, name: str) -> _T:
     return value
 
 
+class StepLosses(Mapping[str, float]):
+    """A step's loss terms and their sum ``loss`` as Python floats, read from the device on first access (all in
+    one host synchronisation: on a logging step, a progress line, a callback), not after every step. The values are
+    those of ``float(term)`` and their Python sum."""
+
+    def __init__(self, terms: dict[str, torch.Tensor]):
+        self._terms = terms
+        self._floats: dict[str, float] | None = None
+
+    def _read(self) -> dict[str, float]:
+        if self._floats is None:
+            values = torch.stack([t.reshape(()).double() for t in self._terms.values()]).tolist() if self._terms else []
+            self._floats = dict(zip(self._terms, values))
+            self._floats["loss"] = sum(values)
+        return self._floats
+
+    def __getitem__(self, key: str) -> float:
+        return self._read()[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter([*self._terms, "loss"])
+
+    def __len__(self) -> int:
+        return len(self._terms) + 1
+
+
 class TrainingDivergedError(RuntimeError):
     """Too many consecutive non-finite steps."""
 
@@ -172,7 +199,7 @@ class Trainer:
         self.phase_times = {name: 0.0 for name in PHASES}
         self.phase_steps = 0
         self.last_eval: dict[str, Any] | None = None
-        self.last_losses: dict[str, float] = {}  # the last step's loss terms (for callbacks)
+        self.last_losses: Mapping[str, float] = {}  # the last step's loss terms (for callbacks)
         self._stop_requested = False
         self._elapsed_offset = 0.0
         self._train_s = 0.0
@@ -352,13 +379,20 @@ class Trainer:
                 f"(see docs/stability.md)."
             )
 
-    def _grad_problem(self) -> str | None:
+    def _step_problem(self, loss: torch.Tensor, loss_dict: dict[str, torch.Tensor], rgb: torch.Tensor) -> str | None:
+        """Why the step just back-propagated must be skipped, or None: a non-finite render, loss or gradient, or a
+        gradient large enough to overflow Adam's squared average. One host synchronisation on a good step (one flag
+        reduced on the device); the reason is worked out only for a bad one."""
         params = [(k, p) for k, p in self.model.gauss_params.items() if p.grad is not None]
-        if not params:
+        peaks = torch.stack([_max_abs(p.grad) for _, p in params]) if params else loss.new_zeros(1)
+        good = torch.isfinite(loss) & torch.isfinite(peaks).all() & (peaks.max() < GRAD_OVERFLOW)
+        if bool(good):
             return None
-        peaks = torch.stack([_max_abs(p.grad) for _, p in params])
-        if bool(torch.isfinite(peaks).all()) and float(peaks.max()) < GRAD_OVERFLOW:
-            return None
+        if not bool(torch.isfinite(rgb).all()):
+            return "non-finite render"
+        if not bool(torch.isfinite(loss)):
+            terms = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in loss_dict.items())
+            return f"non-finite loss ({terms})"
         bad = [k for (k, _), v in zip(params, peaks.tolist()) if not (math.isfinite(v) and v < GRAD_OVERFLOW)]
         return f"non-finite or overflowing gradient of {bad}"
 
@@ -381,20 +415,16 @@ class Trainer:
             if not removed:  # a non-finite camera, not a parameter: a real error
                 raise
             return f"non-finite parameters: {removed} Gaussians removed", None, {}, None
-        if loss_dict is None:
-            return "non-finite render", outputs, {}, batch
         loss = torch.stack(list(loss_dict.values())).sum()
-        if not bool(torch.isfinite(loss)):
-            terms = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in loss_dict.items())
-            return f"non-finite loss ({terms})", outputs, loss_dict, batch
-        self._log_gradient_shares(step + 1, loss_dict, outputs["rgb"])
+        self._log_gradient_shares(step + 1, loss_dict, outputs["rgb"], loss)
         self._lap_start = time.perf_counter()  # the shares are logging, not a phase of the step
         loss.backward()
         self._lap("backward")
-        return self._grad_problem(), outputs, loss_dict, batch
+        return self._step_problem(loss, loss_dict, outputs["rgb"]), outputs, loss_dict, batch
 
-    def train_iteration(self, step: int) -> dict[str, Any]:
-        """Take optimization step ``step`` (0-based). Returns the loss dict as floats (empty for a skipped step)."""
+    def train_iteration(self, step: int) -> Mapping[str, float]:
+        """Take optimization step ``step`` (0-based). Returns the loss terms and ``loss`` as a :class:`StepLosses`
+        (read from the device only when asked; empty for a skipped step)."""
         model = self.model
         model.step = step
         self._lap_start = time.perf_counter()
@@ -416,10 +446,8 @@ class Trainer:
             self._bad_step(step + 1, bad)
             return {}
         self._bad_in_a_row = 0
-        result = {k: float(v.detach()) for k, v in loss_dict.items()}
-        result["loss"] = sum(result.values())
         self._last_outputs, self._last_batch = outputs, batch
-        return result
+        return StepLosses({k: v.detach() for k, v in loss_dict.items()})
 
     # ----------------------------------------------------------------------------------------------- the loop
     def train(self) -> Path:
@@ -439,7 +467,7 @@ class Trainer:
         try:
             if step == 0 and 0 in cfg.eval_at_steps:
                 self.evaluate(0)
-            losses: dict[str, float] = {}
+            losses: Mapping[str, float] = {}
             while step < cfg.max_num_iterations and not self._stop_requested:
                 run_callbacks(self.callbacks, step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
                 t_step, t_step_cpu = time.perf_counter(), time.process_time()
@@ -450,7 +478,7 @@ class Trainer:
                 step += 1
                 if losses and step % cfg.logging.steps_per_log == 0:
                     self._log_train(step, losses)
-                bar.update(step, losses.get("loss"), self.model.num_points)
+                bar.update(step, functools.partial(losses.get, "loss"), self.model.num_points)  # read when shown
                 if self._should_eval(step):
                     self.evaluate(step)
                 if step % cfg.steps_per_save == 0 or step == cfg.max_num_iterations:
@@ -481,9 +509,10 @@ class Trainer:
             f"--load-dir {path.parent} (the records of the steps after the failure are not in metrics.jsonl)"
         )
 
-    def _log_gradient_shares(self, step: int, loss_dict: dict[str, torch.Tensor], image: torch.Tensor) -> None:
+    def _log_gradient_shares(self, step: int, loss_dict: dict[str, torch.Tensor], image: torch.Tensor,
+                             loss: torch.Tensor) -> None:
         every = self.config.logging.steps_per_gradient_shares
-        if every <= 0 or step % every != 0:
+        if every <= 0 or step % every != 0 or not bool(torch.isfinite(loss)):  # a bad step has no shares to log
             return
         start, start_cpu = time.perf_counter(), time.process_time()
         record = {"kind": "gradient_shares", "step": step, "elapsed_s": self._elapsed(), "train_s": self._train_s,
@@ -492,7 +521,7 @@ class Trainer:
         self._side_s += time.perf_counter() - start
         self._side_cpu_s += time.process_time() - start_cpu
 
-    def _log_train(self, step: int, losses: dict[str, float]) -> None:
+    def _log_train(self, step: int, losses: Mapping[str, float]) -> None:
         record: dict[str, Any] = {"kind": "train", "step": step, "elapsed_s": self._elapsed(), "train_s": self._train_s,
                                   "train_cpu_s": self._train_cpu_s}
         record.update(losses)

@@ -110,11 +110,12 @@ def _check_finite(x: Tensor, name: str) -> None:
         )
 
 
-def _check_image(x: Tensor, name: str) -> None:
+def _check_image(x: Tensor, name: str, finite: bool = True) -> None:
     if not isinstance(x, Tensor) or x.dim() != 4:
         shape = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
         raise ValueError(f"'{name}' must be an image batch of shape [B, C, H, W], got {shape}")
-    _check_finite(x, name)
+    if finite:  # a host synchronisation on CUDA: a caller that checks the whole step itself passes False
+        _check_finite(x, name)
 
 
 def level_weights(levels: int, weighting: str = "paper") -> list[float]:
@@ -373,11 +374,12 @@ def wavelet_bands(
     kurtosis: bool = True,
     covariance: bool = True,
     warn_dropped_levels: bool = True,
+    check_finite: bool = True,
 ) -> WaveletBands:
     """The DWT of image [B, C, H, W] and, when asked, its band kurtosis and L_cov (differentiable; raises
-    ValueError on NaN/Inf); the statistics not asked for stay None. Levels the image is too small for are left out
-    (with :func:`dwt2`'s warning unless ``warn_dropped_levels`` is False)."""
-    _check_image(image, "image")
+    ValueError on NaN/Inf unless ``check_finite`` is False); the statistics not asked for stay None. Levels the image
+    is too small for are left out (with :func:`dwt2`'s warning unless ``warn_dropped_levels`` is False)."""
+    _check_image(image, "image", finite=check_finite)
     coeffs = dwt2(image, wave=wave, levels=wavelet_levels, mode=wavelet_mode, warn=warn_dropped_levels)
     k = spread = l_cov = None
     if kurtosis or covariance:  # (no level: empty kurtosis [B, C, 0], zero spread and L_cov)
@@ -484,7 +486,7 @@ class _WeightedBandL1(torch.autograd.Function):
     def backward(ctx, grad_loss: Tensor):
         from kc_splatfacto.losses._dwt_kernels import abs_difference_grad
 
-        upstream = float(grad_loss)
+        upstream = float(grad_loss.numpy())  # a CPU-only path (compiled kernels): read as their arrays are
         grads = []
         for weight, (pred, target), shape in zip(ctx.weights, ctx.flat_pairs, ctx.shapes):
             grad = torch.empty_like(pred)
@@ -579,6 +581,9 @@ class FrequencyLoss(nn.Module):
         self.cbc_supervised = cbc_supervised
         self.cbc_correlation = cbc_correlation
         self._warned_dropped_levels = False
+        #: forward raises ValueError on a NaN/Inf ``pred`` (one host synchronisation on CUDA); a training loop that
+        #: checks its whole step once after backward (kc-train's trainer) sets it False
+        self.check_finite = True
 
     @property
     def config(self) -> FrequencyLossConfig:
@@ -589,11 +594,13 @@ class FrequencyLoss(nn.Module):
     def active(self) -> bool:
         return self.config.active
 
-    def bands(self, image: Tensor, kurtosis: bool = True, covariance: bool = True) -> WaveletBands:
+    def bands(self, image: Tensor, kurtosis: bool = True, covariance: bool = True,
+              check_finite: bool = True) -> WaveletBands:
         """:func:`wavelet_bands` of image [B, C, H, W] with this loss's settings."""
         self._warn_dropped_levels_once(image)
         return wavelet_bands(image, self.wave, self.wavelet_levels, self.wavelet_mode, self.cbc_correlation,
-                             kurtosis=kurtosis, covariance=covariance, warn_dropped_levels=False)
+                             kurtosis=kurtosis, covariance=covariance, warn_dropped_levels=False,
+                             check_finite=check_finite)
 
     def prepare_target(self, gt: Tensor) -> WaveletBands:
         """Detached bands and statistics of gt [B, C, H, W] with this loss's settings (cache it per image)."""
@@ -622,12 +629,12 @@ class FrequencyLoss(nn.Module):
             return {}
         if not isinstance(target, WaveletBands):
             raise TypeError(f"target must be WaveletBands (FrequencyLoss.prepare_target(gt)), got {type(target).__name__}")
-        _check_image(pred, "pred")
+        _check_image(pred, "pred", finite=self.check_finite)
         if tuple(pred.shape) != tuple(target.image_shape):
             raise ValueError(
                 f"pred {tuple(pred.shape)} and target {tuple(target.image_shape)} must have the same [B, C, H, W]"
             )
-        bands = self.bands(pred, kurtosis=self.kc_weight > 0, covariance=self.cbc_weight > 0)
+        bands = self.bands(pred, kurtosis=self.kc_weight > 0, covariance=self.cbc_weight > 0, check_finite=False)
         losses: dict[str, Tensor] = {}
         if self.wavelet_weight > 0:
             losses["wavelet_loss"] = self.wavelet_weight * wavelet_l1(bands, target, self.wavelet_weighting)

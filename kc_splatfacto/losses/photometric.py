@@ -100,6 +100,6 @@ class _FusedDSSIM(torch.autograd.Function):
         SK.blur_rows_adjoint(cols_adjoint, taps, blurred)
         v_pred = np.empty_like(x)
         # d(1 - mean s)/ds = -1 / N at every pixel
-        scale = x.dtype.type(-float(grad_out) / x.size)
+        scale = x.dtype.type(-float(grad_out.numpy()) / x.size)  # the CPU kernels' scalar, read as their arrays are
         SK.ssim_input_grad(blurred.reshape(SK.N_PARTIALS, planes, height, width), x, y, scale, v_pred)
         return torch.from_numpy(v_pred).reshape(ctx.shape), None, None

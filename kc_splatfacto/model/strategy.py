@@ -157,17 +157,18 @@ class DefaultStrategy:
         grads[..., 1] *= info["height"] / 2.0 * info["n_cameras"]
         if radii.dim() == 3:  # gsplat 1.5: per-axis radii [C, N, 2]
             sel = (radii > 0).all(dim=-1)
-            radii_max = radii[sel].max(dim=-1).values
+            radii_max = radii.max(dim=-1).values
         else:
             sel = radii > 0
-            radii_max = radii[sel]
-        gs_ids = torch.where(sel)[1]
-        state["grad2d"].index_add_(0, gs_ids, grads[sel].norm(dim=-1))
-        state["count"].index_add_(0, gs_ids, torch.ones_like(gs_ids, dtype=torch.float32))
+            radii_max = radii
+        # masked sums over the cameras rather than gsplat's index_add_ of the selected entries: no nonzero() or
+        # boolean indexing, so no host synchronisation on CUDA; adding +0.0 where a Gaussian is not seen leaves its
+        # statistics bit for bit as they were (one camera: the same float32 sums as gsplat's)
+        state["grad2d"] += torch.where(sel, grads.norm(dim=-1), 0.0).sum(dim=0)
+        state["count"] += sel.sum(dim=0, dtype=state["count"].dtype)
         if self.refine_scale2d_stop_iter > 0:
-            state["radii"][gs_ids] = torch.maximum(
-                state["radii"][gs_ids], radii_max.float() / float(max(info["width"], info["height"]))
-            )
+            seen = torch.where(sel, radii_max.float(), 0.0).amax(dim=0) / float(max(info["width"], info["height"]))
+            state["radii"] = torch.maximum(state["radii"], seen)
 
     @torch.no_grad()
     def _grow_gs(self, params, optimizers, state: dict[str, Any], step: int) -> tuple[int, int]:
