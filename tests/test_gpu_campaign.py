@@ -102,7 +102,7 @@ def test_the_dry_run_runs_every_phase_and_a_second_lease_reuses_the_first_ones_r
         shared_scene(scene)
     work = tmp_path / "dry"
     proc = subprocess.run([sys.executable, str(PROJECT_ROOT / "benchmarks" / "gpu_campaign.py"), "dry-run",
-                           "--workdir", str(work)], cwd=PROJECT_ROOT, capture_output=True, text=True, timeout=900)
+                           "--workdir", str(work)], cwd=PROJECT_ROOT, capture_output=True, text=True, timeout=1500)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert "dry-run: OK" in proc.stdout
     train_log = next((work / "first" / "logs").glob("call1-train.log")).read_text()
