@@ -22,6 +22,8 @@ from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any
 
+from kc_splatfacto.errors import UserError
+
 METHOD_GROUP = "kc_splatfacto.method_configs"
 DATAPARSER_GROUP = "kc_splatfacto.dataparser_configs"
 METHOD_ENV = "KC_SPLATFACTO_METHOD_CONFIGS"
@@ -47,8 +49,9 @@ class DataParserSpecification:
     description: str
 
 
-class RegistryError(RuntimeError):
-    """A registered specification could not be loaded or has the wrong type."""
+class RegistryError(UserError, RuntimeError):
+    """A registered specification could not be loaded or has the wrong type (a plugin's or the environment
+    variable's: the message names which, and the tools print it as one line)."""
 
 
 def _load_object(name: str, target: str, origin: str) -> Any:
@@ -59,6 +62,9 @@ def _load_object(name: str, target: str, origin: str) -> Any:
         module = importlib.import_module(module_name)
     except ImportError as exc:
         raise RegistryError(f"{origin}: cannot import module '{module_name}' for '{name}': {exc}") from exc
+    except Exception as exc:  # the module itself fails while importing: name it, not a traceback into it
+        raise RegistryError(f"{origin}: importing module '{module_name}' for '{name}' failed: "
+                            f"{type(exc).__name__}: {exc} (fix or remove it from {origin})") from exc
     try:
         return getattr(module, attribute)
     except AttributeError as exc:

@@ -4,7 +4,8 @@ error is one line without a traceback holding the expected fragment, and the cas
 
 Categories (the issue's): 1 work lost (an older scene kept when its replacement fails), 2 hangs (fail within a
 bounded time), 3 silent wrong results in kc-bench and kc-eval, 4 silent wrong results in kc-process-data, 5
-tracebacks, 7 left from the second round (a run folder without a checkpoint). A logging backend failing mid-run
+tracebacks (an output folder that is a file, a malformed KC_SPLATFACTO_METHOD_CONFIGS, a plugin module that raises),
+7 left from the second round (a run folder without a checkpoint). A logging backend failing mid-run
 (category 1) is tested in tests/engine/test_loggers.py (it needs a backend that fails); categories 6 (unclear
 messages) and 8 (what a new user sees) have no case here yet.
 """
@@ -12,8 +13,10 @@ messages) and 8 (what a new user sees) have no case here yet.
 from __future__ import annotations
 
 import csv
+import os
 import shutil
 import socket
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -108,6 +111,12 @@ def _older_scene_kept(root: Path) -> None:
     assert sorted(p.name for p in root.iterdir() if p.name.startswith(".")) == []
 
 
+def _plugin_that_raises(root: Path) -> None:
+    (root / "kc_hostile_plugin.py").write_text("raise RuntimeError(\"the plugin's own bug\")\n")
+    sys.path.insert(0, str(root))  # taken out again by the test (monkeypatch of sys.path)
+    os.environ["KC_SPLATFACTO_METHOD_CONFIGS"] = "mine=kc_hostile_plugin:spec"
+
+
 def _final_step_is_the_budget(step: int) -> Callable[[Path], None]:
     def check(root: Path) -> None:
         with (root / "study" / "evals.csv").open() as handle:
@@ -157,6 +166,16 @@ CASES = [
     Case("process-data-output-dir-is-a-file", 5, "kc-process-data", lambda root: [
         *PROCESS, str(root / "photos"), "--output-dir", str(root / "run" / "config.yml")], 2,
          "is a file, not a folder", edit=_photos),
+    Case("bench-output-dir-is-a-file", 5, "kc-bench", lambda root: [*study(), "--output-dir",
+                                                                    str(root / "run" / "config.yml")], 2,
+         "is a file, not a folder"),
+    Case("method-configs-malformed", 5, "kc-bench", lambda root: [*study(), "--output-dir", str(root / "other")], 2,
+         "'garbage' must have the form name=module:attribute",
+         edit=lambda root: os.environ.__setitem__("KC_SPLATFACTO_METHOD_CONFIGS", "garbage")),
+    Case("method-configs-plugin-that-raises", 5, "kc-bench", lambda root: [*study(), "--output-dir",
+                                                                           str(root / "other")], 2,
+         "importing module 'kc_hostile_plugin' for 'mine' failed: RuntimeError: the plugin's own bug",
+         edit=_plugin_that_raises),
     # 7: left from the second round
     Case("eval-run-without-a-checkpoint", 7, "kc-eval", lambda root: ["--load-config", str(root / "run" / "config.yml")],
          2, "no checkpoint", edit=_without_checkpoints),
@@ -181,6 +200,9 @@ def test_hostile_tool_input(case, templates, tmp_path, capsys, monkeypatch):
     shutil.copytree(templates, root, symlinks=True)
     for name in ("a", "b"):
         (root / name / "scene").mkdir(parents=True)
+    monkeypatch.setattr(sys, "path", list(sys.path))  # a case may add a folder; each case's is put back
+    monkeypatch.delenv("KC_SPLATFACTO_METHOD_CONFIGS", raising=False)
+    monkeypatch.setenv("KC_SPLATFACTO_METHOD_CONFIGS", "")  # registered so that monkeypatch restores it after
     case.edit(root)
     monkeypatch.delenv("KC_DEBUG", raising=False)
     monkeypatch.delenv("RAY_ADDRESS", raising=False)

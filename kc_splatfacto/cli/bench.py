@@ -384,6 +384,9 @@ def check_bench_args(args: argparse.Namespace) -> None:
     among the methods, with a note when it is not)."""
     if args.max_num_iterations < 1:
         raise UserError(f"--max-num-iterations must be at least 1, got {args.max_num_iterations}")
+    for flag, folder in (("--output-dir", args.output_dir), ("--runs-dir", args.runs_dir)):
+        if folder is not None and Path(folder).exists() and not Path(folder).is_dir():
+            raise UserError(f"{flag} {folder} is a file, not a folder: choose a folder for the study")
     if args.num_evals < 1:
         raise UserError(f"--num-evals must be at least 1, got {args.num_evals}")
     for flag, values in (("--seeds", args.seeds), ("--methods", args.methods)):
