@@ -385,7 +385,8 @@ class Trainer:
         reduced on the device); the reason is worked out only for a bad one."""
         params = [(k, p) for k, p in self.model.gauss_params.items() if p.grad is not None]
         peaks = torch.stack([_max_abs(p.grad) for _, p in params]) if params else loss.new_zeros(1)
-        good = torch.isfinite(loss) & torch.isfinite(peaks).all() & (peaks.max() < GRAD_OVERFLOW)
+        good = (torch.isfinite(rgb).all() & torch.isfinite(loss) & torch.isfinite(peaks).all()
+                & (peaks.max() < GRAD_OVERFLOW))  # a non-finite render is skipped even where its loss is finite
         if bool(good):
             return None
         if not bool(torch.isfinite(rgb).all()):

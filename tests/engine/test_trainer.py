@@ -330,3 +330,40 @@ def test_checkpoint_write_is_atomic_and_config_round_trips(tmp_path):
         load_config(tmp_path / "other.yml")
     with pytest.raises(FileNotFoundError, match="config.yml of a run folder"):
         load_config(tmp_path / "missing.yml")
+
+
+def test_a_non_finite_render_is_skipped_even_when_its_loss_is_finite(tmp_path):
+    """One pixel of the render is NaN and the loss does not read it (a loss that masks it out): the step is still
+    skipped as a non-finite render, with nothing updated."""
+    config = tiny_demo_config("splatfacto", tmp_path, iterations=8)
+    trainer = Trainer(config)
+    trainer.setup()
+    model = trainer.model
+    original_outputs, original_losses = model.get_outputs, model.get_loss_dict
+
+    def poisoned_outputs(camera):
+        outputs = original_outputs(camera)
+        if model.step == 5:
+            outputs["rgb"] = outputs["rgb"].clone()
+            outputs["rgb"][0, 0, 0] = float("nan")
+        return outputs
+
+    def loss_without_that_pixel(outputs, batch):
+        if model.step != 5:
+            return original_losses(outputs, batch)
+        return {"main_loss": outputs["rgb"][1:].mean()}  # finite, with a gradient
+
+    model.get_outputs, model.get_loss_dict = poisoned_outputs, loss_without_that_pixel
+    snapshots = {}
+    original_iteration = trainer.train_iteration
+
+    def recording(step):
+        snapshots[step] = model.means.detach().clone()
+        return original_iteration(step)
+
+    trainer.train_iteration = recording
+    with pytest.warns(RuntimeWarning, match="step 6: non-finite render; step skipped"):
+        trainer.train()
+    assert torch.equal(snapshots[5], snapshots[6])  # the skipped step changed nothing
+    bad = [r for r in read_metrics(trainer.run_dir / "metrics.jsonl") if r["kind"] == "bad_step"]
+    assert [(r["step"], r["reason"]) for r in bad] == [(6, "non-finite render")]
