@@ -48,27 +48,35 @@ def synchronize(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def count_syncs_and_launches(trainer, args, steps: int = 5) -> dict:
-    """Host synchronisations and kernel launches per training step (CUDA only: the CPU has neither)."""
-    if args.device != "cuda":
-        return {"syncs": float("nan"), "launches": float("nan")}
+LAUNCH_EVENTS = ("cudaLaunchKernel", "cuLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernelEx")
+
+
+def count_syncs_and_launches(run_steps, steps: int) -> dict:
+    """Host synchronisations (torch's sync debug mode warns at each) and kernel launches (the profiler's launch
+    calls) per step while ``run_steps()`` takes ``steps`` steps on CUDA."""
     from torch.profiler import ProfilerActivity, profile
 
-    first = trainer.config.max_num_iterations
-    trainer.start_step, trainer.config.max_num_iterations = first, first + steps
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         torch.cuda.set_sync_debug_mode("warn")
         try:
             with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
-                trainer.train()
+                run_steps()
                 torch.cuda.synchronize()
         finally:
             torch.cuda.set_sync_debug_mode("default")
     syncs = sum("synchroniz" in str(w.message).lower() for w in caught)
-    launches = sum(e.count for e in prof.key_averages() if e.key in ("cudaLaunchKernel", "cuLaunchKernel",
-                                                                      "cudaLaunchKernelExC", "cuLaunchKernelEx"))
+    launches = sum(e.count for e in prof.key_averages() if e.key in LAUNCH_EVENTS)
     return {"syncs": syncs / steps, "launches": launches / steps}
+
+
+def trainer_syncs(trainer, args, steps: int = 5) -> dict:
+    """:func:`count_syncs_and_launches` of our trainer's next ``steps`` steps (NaN on the CPU: neither exists)."""
+    if args.device != "cuda":
+        return {"syncs": float("nan"), "launches": float("nan")}
+    first = trainer.config.max_num_iterations
+    trainer.start_step, trainer.config.max_num_iterations = first, first + steps
+    return count_syncs_and_launches(trainer.train, steps)
 
 
 def timed_method(method, args, out, run_dir, n_gaussians):
@@ -94,7 +102,7 @@ def timed_method(method, args, out, run_dir, n_gaussians):
     row["step"] = 1000 * (time.perf_counter() - t0) / steps
     row["gaussians"] = trainer.model.num_points
     if args.count_syncs:
-        row.update(count_syncs_and_launches(trainer, args))
+        row.update(trainer_syncs(trainer, args))
     return row
 
 
@@ -142,21 +150,7 @@ def reference_loop(args, state, dataset, steps):
     synchronize(args.device)
     row = {"step": 1000 * (time.perf_counter() - t0) / steps, "gaussians": params["means"].shape[0]}
     if args.count_syncs and args.device == "cuda":
-        from torch.profiler import ProfilerActivity, profile
-
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            torch.cuda.set_sync_debug_mode("warn")
-            try:
-                with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
-                    for s in range(5):
-                        one(s % len(images))
-                    torch.cuda.synchronize()
-            finally:
-                torch.cuda.set_sync_debug_mode("default")
-        row["syncs"] = sum("synchroniz" in str(w.message).lower() for w in caught) / 5
-        row["launches"] = sum(e.count for e in prof.key_averages() if e.key in (
-            "cudaLaunchKernel", "cuLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernelEx")) / 5
+        row.update(count_syncs_and_launches(lambda: [one(s % len(images)) for s in range(5)], 5))
     elif args.count_syncs:
         row.update(syncs=float("nan"), launches=float("nan"))
     return row

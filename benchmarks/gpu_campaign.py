@@ -188,10 +188,20 @@ def folder_bytes(path: Path) -> int:
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file() and not f.is_symlink())
 
 
+def is_set_aside(path: str) -> bool:
+    """Whether ``set_aside`` takes this tracked path out of what travels."""
+    return path.startswith(SET_ASIDE_ROOT + "/") and not path.startswith(TRAVELS_ANYWAY)
+
+
+def tree_bytes(root: Path, without_set_aside: bool = False) -> int:
+    """Bytes of the working tree a call sends (``without_set_aside``: as it will be once ``set_aside`` ran)."""
+    return sum((root / p).stat().st_size for p in tracked_and_untracked(root)
+               if (root / p).is_file() and not (without_set_aside and is_set_aside(p)))
+
+
 def travel_bytes(root: Path, carry: tuple[str, ...] = CARRY) -> dict[str, int]:
     """Bytes per part of what one call sends: the working tree and each carried path."""
-    tree = sum((root / p).stat().st_size for p in tracked_and_untracked(root) if (root / p).is_file())
-    parts = {"working tree": tree}
+    parts = {"working tree": tree_bytes(root)}
     for c in carry:
         parts[c] = folder_bytes(root / c) if (root / c).exists() else 0
     return parts
@@ -202,7 +212,7 @@ def set_aside(root: Path) -> list[str]:
     disk and in the commits, and ``restore`` puts them back in the index."""
     files = subprocess.run(["git", "ls-files", "-z", SET_ASIDE_ROOT], cwd=root, check=True,
                            capture_output=True).stdout.decode().split("\0")
-    folders = sorted({"/".join(f.split("/")[:3]) for f in files if f and not f.startswith(TRAVELS_ANYWAY)})
+    folders = sorted({"/".join(f.split("/")[:3]) for f in files if f and is_set_aside(f)})
     if not folders:
         return []
     subprocess.run(["git", "rm", "-r", "-q", "--cached", "--", *folders], cwd=root, check=True)
@@ -424,10 +434,7 @@ class Context:
 
     @property
     def data(self) -> Path:
-        return self.env_path("KC_SHARED_DATA")
-
-    def env_path(self, key: str) -> Path:
-        return Path(self.env[key])
+        return Path(self.env["KC_SHARED_DATA"])
 
     @property
     def device(self) -> str:
@@ -496,11 +503,11 @@ def phase_tests(ctx: Context, budget: float) -> int:
     parity = {"KC_PARITY_REPORT": str(ctx.work / "logs" / "parity.json")}
     code = ctx.run("tests", [*pytest, *GPU_TESTS, "--junitxml", str(ctx.work / "logs" / "gpu-tests.xml")],
                    budget / 3, parity)
-    suite = [*pytest, "--junitxml", str(ctx.work / "logs" / "suite.xml"), "tests"]
     if ctx.dry:  # the command line checked, not the 1400 tests (CI runs them anyway)
         suite = [*pytest, "--collect-only", "tests/render"]
-    else:
-        suite[4:4] = ["-n", "8", "--dist", "loadfile", "--timeout", "240"]  # pytest-xdist and pytest-timeout are in the image
+    else:  # pytest-xdist and pytest-timeout are in the image
+        suite = [*pytest, "-n", "8", "--dist", "loadfile", "--timeout", "240",
+                 "--junitxml", str(ctx.work / "logs" / "suite.xml"), "tests"]
     return ctx.run("tests", suite, budget * 2 / 3 - 5) or code
 
 
@@ -698,9 +705,12 @@ def cmd_dry_run(args) -> int:
     image = json.loads(IMAGE_FILE.read_text())
     lock = json.loads(LOCK_FILE.read_text())
     problems = check_plan(LEASES["full"]) + check_plan(LEASES["study"]) + check_wheels(ROOT, lock, image)
-    carried = sum(e["bytes"] for e in lock) + sum(folder_bytes(SHARED_DATA / s) for s in SCENES) + 10 * MIB
-    tree = sum((ROOT / p).stat().st_size for p in tracked_and_untracked(ROOT) if (ROOT / p).is_file()
-               and not (p.startswith(SET_ASIDE_ROOT + "/") and not p.startswith(TRAVELS_ANYWAY)))
+    sys.path.insert(0, str(ROOT))
+    from kc_splatfacto.lpips import weights_path
+
+    carried = (sum(e["bytes"] for e in lock) + sum(folder_bytes(SHARED_DATA / s) for s in SCENES)
+               + folder_bytes(weights_path("alex")))
+    tree = tree_bytes(ROOT, without_set_aside=True)
     print(f"dry-run: travel per call {(tree + carried) / MIB:.1f} MiB with docs/results set aside "
           f"(wheels {sum(e['bytes'] for e in lock) / MIB:.1f}, scenes and LPIPS weights "
           f"{(carried - sum(e['bytes'] for e in lock)) / MIB:.1f}, tree {tree / MIB:.1f})")
