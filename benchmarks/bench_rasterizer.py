@@ -92,7 +92,7 @@ def _render_once(scene, backend, dtype, weights=None):
     leaves = [scene[k].to(dtype).clone().requires_grad_(True) for k in PARAMS]
     t0 = time.perf_counter()
     colors, alphas, meta = rasterization(*leaves, scene["viewmats"].to(dtype), scene["Ks"].to(dtype), scene["width"],
-                                         scene["height"], backend=backend)
+                                         scene["height"], rasterizer=backend)
     t1 = time.perf_counter()
     if weights is None:
         g = torch.Generator().manual_seed(1)
@@ -106,7 +106,7 @@ def _render_once(scene, backend, dtype, weights=None):
 
 def _stage_breakdown(scene):
     """Fast path per stage (s): projection, tile binning, compositing fwd, compositing bwd, projection bwd (the
-    compiled stages that ``rasterization(backend="cpu")`` runs)."""
+    compiled stages that ``rasterization(rasterizer="cpu")`` runs)."""
     import torch
 
     from kc_splatfacto.render.constants import EPS2D, FAR_PLANE, NEAR_PLANE
@@ -156,7 +156,7 @@ def worker_timing(name: str, backend: str, reps: int) -> dict:
         cpu.append(time.process_time() - c0)
         fwd.append(f)
         bwd.append(b)
-    result = dict(scene=name, backend=backend, fwd_ms=1e3 * float(np.median(fwd)), bwd_ms=1e3 * float(np.median(bwd)),
+    result = dict(scene=name, rasterizer=backend, fwd_ms=1e3 * float(np.median(fwd)), bwd_ms=1e3 * float(np.median(bwd)),
                   cpu_ms=1e3 * float(np.median(cpu)), threads=torch.get_num_threads(),
                   n_isects=int(meta["flatten_ids"].numel()), mean_alpha=float(alphas.mean()))
     if backend == "cpu":
@@ -180,7 +180,7 @@ def worker_precision(name: str, backend: str, dtype_name: str, out: str) -> dict
     f, b, colors, alphas, grads, _, _ = _render_once(scene, backend, dtype)
     np.savez(out, colors=colors.double().numpy(), alphas=alphas.double().numpy(),
              **{f"grad_{k}": g.double().numpy() for k, g in zip(PARAMS, grads)})
-    return dict(scene=name, backend=backend, dtype=dtype_name, seconds=f + b)
+    return dict(scene=name, rasterizer=backend, dtype=dtype_name, seconds=f + b)
 
 
 def worker_cold(t_start: float) -> dict:
@@ -191,7 +191,7 @@ def worker_cold(t_start: float) -> dict:
 
     scene = random_scene(128, 1_000)
     leaves = [scene[k].clone().requires_grad_(True) for k in PARAMS]
-    colors, alphas, _ = rasterization(*leaves, scene["viewmats"], scene["Ks"], 128, 128, backend="cpu")
+    colors, alphas, _ = rasterization(*leaves, scene["viewmats"], scene["Ks"], 128, 128, rasterizer="cpu")
     t_fwd = time.perf_counter()
     (colors.sum() + alphas.sum()).backward()
     t_done = time.perf_counter()

@@ -128,12 +128,12 @@ def main() -> int:
                 trainer.phase_steps = 0
                 trainer.config.max_num_iterations = args.warmup_steps + args.steps
                 trainer.start_step = args.warmup_steps + 1
-                t_train = trainer._train_s
+                t_train = trainer.train_seconds
                 trainer.train()
                 steps = trainer.phase_steps
                 for phase in PHASES:
                     per_method[method][phase].append(1000 * trainer.phase_times[phase] / steps)
-                per_method[method]["step"].append(1000 * (trainer._train_s - t_train) / steps)
+                per_method[method]["step"].append(1000 * (trainer.train_seconds - t_train) / steps)
     median = {m: {p: statistics.median(v) for p, v in d.items()} for m, d in per_method.items()}
     base = median[args.methods[0]]
     print(f"\nms per step (median of {args.rounds} rounds x {args.steps} steps; castle-P30 {width}x{height}, "

@@ -86,7 +86,7 @@ def main() -> None:
     args = parser.parse_args()
     model, dataset, label = build(args)
     model.train()
-    model.step = 10**6  # full SH degree and resolution; density control is never called here
+    model.set_step(10**6)  # full SH degree and resolution; density control is never called here
     camera, gt = dataset.cameras[args.view], dataset.image_float(args.view)
     batch = {"image": gt, "image_idx": None}
 

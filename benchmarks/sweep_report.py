@@ -1,7 +1,7 @@
 """Report a sweep: finished run folders of one scene under labels of your choice, against one of them.
 
 ``kc-bench`` reports registered methods run with one set of overrides; a sweep varies the overrides from run to run
-(``kc-bench --methods kc-splatfacto --set pipeline.model.kc_weight=1e-6 --runs-dir ...``), so its runs land in
+(``kc-bench --methods kc-splatfacto --set pipeline.model.frequency.kc_weight=1e-6 --runs-dir ...``), so its runs land in
 several run folders under the same method name. This script puts them side by side::
 
     python benchmarks/sweep_report.py --out docs/results/castle-P30-sweep --baseline splatfacto \\

@@ -16,7 +16,7 @@ from 32 views on). Splatfacto's 30k castle-P30 collapse came from view-dependent
 from __future__ import annotations
 
 from kc_splatfacto.registry import MethodSpecification
-from method_configs.splatfacto_configs import KC_DEFAULTS, _trainer
+from method_configs.splatfacto_configs import PAPER, _trainer
 
 SPARSE_SH_VIEWS_PER_COEFFICIENT = 2.0
 """views per SH coefficient the sparse-SH variants ask for"""
@@ -26,6 +26,6 @@ splatfacto_sparse_sh = MethodSpecification(
     description="Splatfacto with the SH degree capped by the training views (>= 2 views per SH coefficient)",
 )
 kc_splatfacto_sparse_sh = MethodSpecification(
-    config=_trainer("kc-splatfacto-sparse-sh", **KC_DEFAULTS, sh_views_per_coefficient=SPARSE_SH_VIEWS_PER_COEFFICIENT),
+    config=_trainer("kc-splatfacto-sparse-sh", PAPER, sh_views_per_coefficient=SPARSE_SH_VIEWS_PER_COEFFICIENT),
     description="KC-3DGS (paper settings) with the SH degree capped by the training views (>= 2 views per SH coefficient)",
 )

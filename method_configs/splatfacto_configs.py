@@ -1,7 +1,8 @@
 """Method specifications: ``splatfacto``, ``kc-splatfacto`` (the paper's defaults), its ``fine``-weighting variant and
 the ablations of the paper's supplementary table "Ablation study on loss components" (sparse-view, Splatfacto).
 
-Mapping of the paper's ablation rows to config values (``pipeline.model``):
+Mapping of the paper's ablation rows to config values (``pipeline.model.ssim_lambda`` and ``pipeline.model.frequency``,
+a :class:`~kc_splatfacto.losses.frequency.FrequencyLossConfig` whose defaults are the paper's):
 
 | paper row                          | method name                 | ssim_lambda | wavelet | weighting | kc   | cbc  | cbc_correlation |
 |------------------------------------|-----------------------------|-------------|---------|-----------|------|------|-----------------|
@@ -31,17 +32,20 @@ from kc_splatfacto.losses.frequency import FrequencyLossConfig
 from kc_splatfacto.model.splatfacto import SplatfactoModelConfig
 from kc_splatfacto.registry import MethodSpecification
 
-KC_DEFAULTS = dataclasses.asdict(FrequencyLossConfig())
-"""the paper's frequency-loss settings (Method section; supplementary 'Hyperparameter' table), as model fields"""
-PAPER_WAVELET_WEIGHT = KC_DEFAULTS["wavelet_weight"]
+PAPER = FrequencyLossConfig()
+"""the paper's frequency-loss settings (Method section; supplementary 'Hyperparameter' table)"""
+WAVELET_ONLY = dataclasses.replace(FrequencyLossConfig.off(), wavelet_weight=PAPER.wavelet_weight)
+"""the paper's wavelet L1 alone (KC and CBC off): the wavelet ablations"""
+CORRELATION_CBC = dataclasses.replace(PAPER, cbc_correlation=True)
+"""the paper's settings with the CBC on band correlations: the "(Scaled)CBC" ablation row and kc-splatfacto-corr"""
 
-KC_CORRELATION_CBC = {**KC_DEFAULTS, "cbc_correlation": True}
-"""the paper's defaults with the CBC on band correlations: the "(Scaled)CBC" ablation row and kc-splatfacto-corr"""
 
-
-def _trainer(method_name: str, **model_overrides) -> TrainerConfig:
+def _trainer(method_name: str, frequency: FrequencyLossConfig | None = None, **model_overrides) -> TrainerConfig:
+    """Splatfacto's TrainerConfig named ``method_name`` with these model fields (``frequency``: the wavelet losses;
+    None: off)."""
     config = TrainerConfig(method_name=method_name)
-    config.pipeline.model = dataclasses.replace(SplatfactoModelConfig(), **model_overrides)
+    frequency = dataclasses.replace(frequency) if frequency is not None else FrequencyLossConfig.off()  # own copy
+    config.pipeline.model = dataclasses.replace(SplatfactoModelConfig(), frequency=frequency, **model_overrides)
     return config
 
 
@@ -50,36 +54,36 @@ splatfacto = MethodSpecification(
     description="Splatfacto baseline (nerfstudio 1.1.5 defaults): 0.8 L1 + 0.2 (1 - SSIM)",
 )
 kc_splatfacto = MethodSpecification(
-    config=_trainer("kc-splatfacto", **KC_DEFAULTS),
+    config=_trainer("kc-splatfacto", PAPER),
     description="KC-3DGS: Splatfacto + wavelet L1 (1e-3, 2^j) + supervised KC (1e-5) + CBC (1e-2), db3, 3 levels",
 )
 kc_splatfacto_fine = MethodSpecification(
-    config=_trainer("kc-splatfacto-fine", **{**KC_DEFAULTS, "wavelet_weighting": "fine"}),
+    config=_trainer("kc-splatfacto-fine", dataclasses.replace(PAPER, wavelet_weighting="fine")),
     description="KC-3DGS with the 'fine' wavelet weighting 2^(J-j+1) (finer levels heavier, as the paper's text says)",
 )
 ablation_l1_wavelet = MethodSpecification(
-    config=_trainer("kc-ablation-l1-wavelet", ssim_lambda=0.0, wavelet_weight=PAPER_WAVELET_WEIGHT),
+    config=_trainer("kc-ablation-l1-wavelet", WAVELET_ONLY, ssim_lambda=0.0),
     description="ablation L1+Wavelet: L1 + wavelet L1 (1e-3), no SSIM, no KC/CBC",
 )
 ablation_wavelet = MethodSpecification(
-    config=_trainer("kc-ablation-wavelet", wavelet_weight=PAPER_WAVELET_WEIGHT),
+    config=_trainer("kc-ablation-wavelet", WAVELET_ONLY),
     description="ablation L1+SSIM+Wavelets: Splatfacto + wavelet L1 (1e-3), no KC/CBC",
 )
 ablation_unscaled_wavelet = MethodSpecification(
-    config=_trainer("kc-ablation-unscaled-wavelet", wavelet_weight=PAPER_WAVELET_WEIGHT,
-                    wavelet_weighting="uniform"),
+    config=_trainer("kc-ablation-unscaled-wavelet",
+                    dataclasses.replace(WAVELET_ONLY, wavelet_weighting="uniform")),
     description="ablation L1+SSIM+(Unscaled)Wavelets: wavelet L1 without the 2^j level weights",
 )
 ablation_heavy_wavelet = MethodSpecification(
-    config=_trainer("kc-ablation-heavy-wavelet", **{**KC_DEFAULTS, "wavelet_weight": 1e-1}),
+    config=_trainer("kc-ablation-heavy-wavelet", dataclasses.replace(PAPER, wavelet_weight=1e-1)),
     description="ablation L1+SSIM+KC+CBC+(Heavy)Wavelets: KC-3DGS with wavelet weight 1e-1",
 )
 ablation_scaled_cbc = MethodSpecification(
-    config=_trainer("kc-ablation-scaled-cbc", **KC_CORRELATION_CBC),
+    config=_trainer("kc-ablation-scaled-cbc", CORRELATION_CBC),
     description="ablation L1+SSIM+KC+(Scaled)CBC+Wavelets: KC-3DGS with CBC on correlations",
 )
 kc_splatfacto_corr = MethodSpecification(
-    config=_trainer("kc-splatfacto-corr", **KC_CORRELATION_CBC),
+    config=_trainer("kc-splatfacto-corr", CORRELATION_CBC),
     description="KC-3DGS tuned on castle-P30: the paper's weights with the CBC on band correlations "
                 "(docs/results/castle-P30-sweep)",
 )

@@ -7,7 +7,7 @@ import torch
 
 from kc_splatfacto import backend
 from kc_splatfacto.errors import UserError
-from kc_splatfacto.render import rasterization, resolve_backend
+from kc_splatfacto.render import rasterization, resolve_rasterizer
 
 
 def test_compiled_only_for_cpu_tensors_and_not_when_forced(monkeypatch):
@@ -36,9 +36,9 @@ def test_bad_environment_value_is_a_user_error(monkeypatch):
 def test_forced_reference_makes_auto_rasterize_with_torch():
     cpu = torch.device("cpu")
     with backend.torch_reference():
-        assert resolve_backend("auto", cpu) == "torch"
-        assert resolve_backend("cpu", cpu) == "cpu"  # an explicit backend is honoured
-    assert resolve_backend("auto", cpu) == "cpu"
+        assert resolve_rasterizer("auto", cpu) == "torch"
+        assert resolve_rasterizer("cpu", cpu) == "cpu"  # an explicit backend is honoured
+    assert resolve_rasterizer("auto", cpu) == "cpu"
     n = 5
     g = torch.Generator().manual_seed(0)
     args = (
@@ -50,6 +50,6 @@ def test_forced_reference_makes_auto_rasterize_with_torch():
     with backend.torch_reference():
         forced, _, meta_forced = rasterization(*args)
     fast, _, meta_fast = rasterization(*args)
-    assert meta_forced["backend"] == "torch" and meta_fast["backend"] == "cpu"
+    assert meta_forced["rasterizer"] == "torch" and meta_fast["rasterizer"] == "cpu"
     assert forced.amax() > 0.05  # the scene is on screen
     torch.testing.assert_close(forced, fast, atol=1e-5, rtol=0)

@@ -229,11 +229,11 @@ def only_the_old_checkpoint(root):
 
 CASES = [
     # 1. config values: checked when the config is built, with the dotted name, the value and the range
-    Case("kc-weight-nan", 1, "transforms", train("--pipeline.model.kc-weight", "nan"), 2, "pipeline.model.kc_weight"),
-    Case("wavelet-weight-inf", 1, "transforms", train("--pipeline.model.wavelet-weight", "inf"), 2,
-         "pipeline.model.wavelet_weight"),
-    Case("cbc-weight-negative", 1, "transforms", train("--pipeline.model.cbc-weight", "-1"), 2,
-         "pipeline.model.cbc_weight"),
+    Case("kc-weight-nan", 1, "transforms", train("--pipeline.model.frequency.kc-weight", "nan"), 2, "pipeline.model.frequency.kc_weight"),
+    Case("wavelet-weight-inf", 1, "transforms", train("--pipeline.model.frequency.wavelet-weight", "inf"), 2,
+         "pipeline.model.frequency.wavelet_weight"),
+    Case("cbc-weight-negative", 1, "transforms", train("--pipeline.model.frequency.cbc-weight", "-1"), 2,
+         "pipeline.model.frequency.cbc_weight"),
     Case("seed-negative", 1, "transforms", train("--machine.seed", "-1"), 2, "machine.seed"),
     Case("seed-2^32", 1, "transforms", train("--machine.seed", "4294967296"), 2, "machine.seed"),
     Case("steps-per-log-0", 1, "transforms", train("--logging.steps-per-log", "0"), 2, "logging.steps_per_log"),
@@ -243,8 +243,8 @@ CASES = [
     Case("refine-every-0", 1, "transforms", train("--pipeline.model.refine-every", "0"), 2,
          "pipeline.model.refine_every"),
     Case("wavelet-levels-0-with-weight", 1, "transforms",
-         train("--pipeline.model.wavelet-levels", "0", "--pipeline.model.wavelet-weight", "1e-3"), 2,
-         "pipeline.model.wavelet_levels"),
+         train("--pipeline.model.frequency.wavelet-levels", "0", "--pipeline.model.frequency.wavelet-weight", "1e-3"), 2,
+         "pipeline.model.frequency.wavelet_levels"),
     Case("ssim-lambda-2", 1, "transforms", train("--pipeline.model.ssim-lambda", "2"), 2, "pipeline.model.ssim_lambda"),
     Case("sh-degree-9", 1, "transforms", train("--pipeline.model.sh-degree", "9"), 2, "pipeline.model.sh_degree"),
     Case("sh-degree-negative", 1, "transforms", train("--pipeline.model.sh-degree", "-1"), 2,

@@ -98,9 +98,9 @@ def scene_downscale_factors(data: Sequence[str], factors: Sequence[int] | None) 
 
 
 def apply_override(config: Any, assignment: str) -> Any:
-    """``config`` with one dotted field set from ``'pipeline.model.kc_weight=1e-4'``, parsed by kc-train's own
-    parser (:func:`kc_splatfacto.cli.train.override_config`): the same flags, types, choices and errors as
-    ``kc-train METHOD --pipeline.model.kc-weight 1e-4``. Several values (a tuple field) are separated by spaces."""
+    """``config`` with one dotted field set from ``'pipeline.model.frequency.kc_weight=1e-4'``, parsed by kc-train's
+    own parser (:func:`kc_splatfacto.cli.train.override_config`): the same flags, types, choices and errors as
+    ``kc-train METHOD --pipeline.model.frequency.kc-weight 1e-4``. Several values (a tuple field) are separated by spaces."""
     key, sep, value = assignment.partition("=")
     if not sep or not key.strip():
         raise BenchArgumentError(f"--set '{assignment}': expected dotted.field=value")
@@ -444,7 +444,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="x axis: training seconds (evaluation excluded), their CPU seconds (what other work on "
                              "the machine barely moves), or wall clock")
     parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
-                        help="dotted config overrides applied to every run, e.g. pipeline.model.rasterization_backend=cpu")
+                        help="dotted config overrides applied to every run, e.g. pipeline.model.rasterizer=cpu")
     parser.add_argument("--output-dir", type=Path, default=Path("bench"), help="report folder")
     parser.add_argument("--runs-dir", type=Path, default=None, help="run folders (default OUTPUT_DIR/runs)")
     parser.add_argument("--resume", action="store_true",

@@ -3,7 +3,7 @@ config dataclasses), tyro's error boxes as one line with the closest valid names
 screen (``--help-all`` is tyro's full text).
 
 tyro's naming, which :func:`config_flags` follows: a nested dataclass field is a dotted prefix
-(``--pipeline.model.kc-weight``), underscores become hyphens, a field whose type is a union of dataclasses is a
+(``--pipeline.model.frequency.kc-weight``), underscores become hyphens, a field whose type is a union of dataclasses is a
 subcommand whose fields keep the prefix (``--optimizers.means.scheduler.lr-final``), except the dataparser's, whose
 subcommands drop it (``colmap --downscale-factor 4``).
 """
@@ -34,10 +34,18 @@ SHORT_HELP_FLAGS = (
     "--data", "--max-num-iterations", "--output-dir", "--experiment-name", "--load-dir",
     "--steps-per-eval-all-images", "--machine.device", "--machine.seed",
     "--pipeline.model.steps-scale", "--pipeline.model.sh-degree", "--pipeline.model.ssim-lambda",
-    "--pipeline.model.max-num-gaussians", "--pipeline.model.wavelet-weight", "--pipeline.model.kc-weight",
-    "--pipeline.model.cbc-weight", "--pipeline.model.wave", "--pipeline.model.wavelet-levels",
-    "--pipeline.model.rasterization-backend",
+    "--pipeline.model.max-num-gaussians", "--pipeline.model.frequency.wavelet-weight",
+    "--pipeline.model.frequency.kc-weight", "--pipeline.model.frequency.cbc-weight", "--pipeline.model.frequency.wave",
+    "--pipeline.model.frequency.wavelet-levels", "--pipeline.model.rasterizer",
 )
+#: flags of earlier versions and where their setting lives now (the frequency-loss settings moved into
+#: ``pipeline.model.frequency``, the rasterizer's name was rasterization-backend): named in the error, so an old command
+#: line says what to type
+MOVED_FLAGS = {
+    f"--pipeline.model.{name}": f"--pipeline.model.frequency.{name}"
+    for name in ("wavelet-weight", "kc-weight", "cbc-weight", "wave", "wavelet-levels", "wavelet-mode",
+                 "wavelet-weighting", "kc-supervised", "cbc-supervised", "cbc-correlation")
+} | {"--pipeline.model.rasterization-backend": "--pipeline.model.rasterizer"}
 SHORT_HELP_RUN_FLAGS = 8
 #: help lines the short help words differently from the field's docstring
 SHORT_HELP_TEXT = {"--data": "scene folder (SPARS3R, COLMAP, transforms.json), or 'demo'"}
@@ -50,6 +58,14 @@ FLAG_COLUMN = 46
 #: tyro's box drawing (rich's, or its ASCII fallback): the sides, and what its top, bottom and rules are made of
 BOX_SIDES = "│|"
 BOX_RULES = "╭╮╰╯─-+="
+
+
+def check_no_moved_flags(args: list[str]) -> None:
+    """A :class:`UserError` naming the first flag of ``args`` that moved (:data:`MOVED_FLAGS`) and its new name."""
+    for arg in args:
+        name = arg.split("=", 1)[0]
+        if name in MOVED_FLAGS:
+            raise UserError(f"{name} is now {MOVED_FLAGS[name]}")
 
 
 @dataclass

@@ -78,7 +78,7 @@ def did_you_mean(word: str, valid) -> str:
     """``"; did you mean X or Y?"`` for the names of ``valid`` closest to ``word``, or ``""`` when none is close.
 
     A flag is scored against the whole valid name and against its last dotted part (``--kc-weigth`` ->
-    ``--pipeline.model.kc-weight``); only names about as close as the best one are offered."""
+    ``--pipeline.model.frequency.kc-weight``); only names about as close as the best one are offered."""
     scores = {}
     for name in set(valid):
         tail = f"--{name.rsplit('.', 1)[-1].lstrip('-')}" if name.startswith("--") else name

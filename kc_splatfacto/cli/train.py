@@ -6,7 +6,7 @@ Methods come from the ``kc_splatfacto.method_configs`` entry points and ``KC_SPL
 
     kc-train kc-splatfacto --data demo
     kc-train kc-splatfacto --data ../shared/data/castle-P30 --max-num-iterations 3000 \\
-        --pipeline.model.steps-scale 0.1 --pipeline.model.kc-weight 1e-3 spars3r --downscale-factor 4
+        --pipeline.model.steps-scale 0.1 --pipeline.model.frequency.kc-weight 1e-3 spars3r --downscale-factor 4
     kc-train kc-splatfacto --data SCENE colmap --downscale-factor 4 --eval-mode interval
 
 The dataparser is a subcommand after the method's options (``auto``, the default, detects the format from
@@ -25,11 +25,16 @@ from typing import Any
 
 import tyro
 
-from kc_splatfacto.cli.flags import config_flags, dataparser_flags, short_help, tyro_errors_as_one_line
+from kc_splatfacto.cli.flags import (
+    check_no_moved_flags,
+    config_flags,
+    dataparser_flags,
+    short_help,
+    tyro_errors_as_one_line,
+)
 from kc_splatfacto.cli.main import did_you_mean, run_cli
 from kc_splatfacto.engine.datamanager import install_dataparser_subcommands
 from kc_splatfacto.engine.trainer import TrainingDivergedError
-from kc_splatfacto.engine.validation import validate_config
 from kc_splatfacto.errors import UserError
 from kc_splatfacto.model.strategy import NoGaussiansLeftError
 from kc_splatfacto.registry import discover_methods
@@ -56,8 +61,9 @@ def _markers(config_type: Any) -> Any:
 
 
 def override_config(config: Any, args: list[str]) -> Any:
-    """A copy of ``config`` with kc-train's dotted flags applied (``["--pipeline.model.kc-weight", "1e-4"]``):
+    """A copy of ``config`` with kc-train's dotted flags applied (``["--pipeline.model.frequency.kc-weight", "1e-4"]``):
     the one override path, shared by kc-bench's ``--set``."""
+    check_no_moved_flags(list(args))
     install_dataparser_subcommands()
     return tyro.cli(_markers(type(config)), default=copy.deepcopy(config), args=list(args),
                     description=DESCRIPTION)
@@ -82,6 +88,7 @@ def parse_command_line(argv: list[str]):
     if method is None and argv and argv[0] not in HELP_FLAGS:
         raise UserError(f"the method comes first: kc-train METHOD --data SCENE [OPTIONS], METHOD one of "
                         f"{', '.join(sorted(methods))}")
+    check_no_moved_flags(argv)
     parsers = dataparser_flags()
     before_dataparser = argv[1:next((i for i, a in enumerate(argv) if i > 0 and a in parsers), len(argv))]
     if method is not None and any(a in HELP_FLAGS for a in before_dataparser):
@@ -117,12 +124,7 @@ def main(argv: list[str]) -> int:
         argv = ["--help"]
     config = parse_command_line(expand_bare_flags(argv))
 
-    validate_config(config)  # every value, with its dotted name, before the device, the scene or the run folder
-    try:
-        config.machine.resolve_device()
-    except RuntimeError as exc:  # e.g. --machine.device cuda on a machine without CUDA: the flag, not a bug
-        raise UserError(str(exc)) from exc
-    trainer = config.setup()
+    trainer = config.setup()  # every value checked, with its dotted name, before the device, scene or run folder
     viewer = attach_viewer(trainer) if config.viewer.enabled else None
     try:
         run_dir = trainer.train()
@@ -141,7 +143,7 @@ def main(argv: list[str]) -> int:
             f"final {final.get('split', 'test')} metrics at step {final['step']} over {final['num_images']} images: "
             f"PSNR {final['psnr']:.3f} dB, SSIM {final['ssim']:.4f}, LPIPS({final.get('lpips_net', 'alex')}) {lpips_text}"
         )
-    print(f"gaussians: {trainer.model.num_points}, training time: {trainer._train_s:.1f} s")
+    print(f"gaussians: {trainer.model.num_points}, training time: {trainer.train_seconds:.1f} s")
     print(f"output folder: {run_dir}")
     if viewer is not None and config.viewer.quit_on_train_completion:
         viewer.stop()

@@ -26,6 +26,7 @@ import torch
 from kc_splatfacto.atomic import atomic_write_text
 from kc_splatfacto.data.outputs import Cameras, DataparserOutputs
 from kc_splatfacto.errors import UserError
+from kc_splatfacto.settings import integer, setting
 
 SPLITS = ("train", "val", "test")
 ORIENTATION_METHODS = ("up", "none")
@@ -54,7 +55,7 @@ class DataParserConfig:
 
     data: Path = Path(".")
     """Scene folder (or file, for formats that allow it)."""
-    downscale_factor: int = 1
+    downscale_factor: int = setting(1, integer(1))
     """Integer image downscale; resized copies are cached in ``images_N/`` (see ``cache_dir``)."""
     orientation_method: Literal["up", "none"] = "up"
     """nerfstudio's orientation: "up" (mean camera up -> +z) or "none"."""

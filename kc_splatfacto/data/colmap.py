@@ -53,6 +53,7 @@ from kc_splatfacto.data.images import (
 from kc_splatfacto.data.outputs import DataparserOutputs
 from kc_splatfacto.data.paths import inside_folder
 from kc_splatfacto.registry import DataParserSpecification
+from kc_splatfacto.settings import integer, real, setting
 
 # COLMAP model folders tried in order when none is configured (nerfstudio's default is colmap/sparse/0).
 DEFAULT_MODEL_DIRS = ("sparse/0", "colmap/sparse/0", "sparse")
@@ -634,9 +635,9 @@ class ColmapDataParserConfig(DataParserConfig):
     """Model folder relative to ``data``; None tries sparse/0, colmap/sparse/0, sparse."""
     eval_mode: Literal["interval", "fraction", "filename", "all"] = "interval"
     """"interval", "fraction", "filename" or "all" (nerfstudio's)."""
-    eval_interval: int = 8
+    eval_interval: int = setting(8, integer(1))
     """Every ``eval_interval``-th image is eval (eval_mode "interval")."""
-    train_split_fraction: float = 0.9
+    train_split_fraction: float = setting(0.9, real(0.0, 1.0, low_open=True))
     """Fraction of images for training (eval_mode "fraction")."""
     load_3d_points: bool = True
     """Seed points from points3D."""

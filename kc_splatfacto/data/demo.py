@@ -34,6 +34,7 @@ from kc_splatfacto.data.images import write_image_atomic
 from kc_splatfacto.data.spars3r import Spars3rDataParser, Spars3rDataParserConfig
 from kc_splatfacto.registry import DataParserSpecification
 from kc_splatfacto.render.projection import rotmat_to_quat
+from kc_splatfacto.settings import SEED_MAX, integer, real, setting
 
 # Bump when the generator changes: it is part of the cache key, so stale scenes are never reused.
 DEMO_VERSION = 2  # 2: camera quaternions from render.projection.rotmat_to_quat (within 4e-16 of v1's)
@@ -447,17 +448,17 @@ class DemoDataParserConfig(Spars3rDataParserConfig):
     """The generated demo scene (``--data demo``); ``data`` is ignored and set to the cached scene folder."""
 
     data: Path = Path("demo")
-    seed: int = 0
+    seed: int = setting(0, integer(0, SEED_MAX))
     """Generator seed: the same seed gives identical images, cameras and points."""
-    width: int = 160
+    width: int = setting(160, integer(1))
     """image width in pixels"""
-    height: int = 120
+    height: int = setting(120, integer(1))
     """image height in pixels"""
-    num_cameras: int = 24
+    num_cameras: int = setting(24, integer(2))
     """Cameras on the arc; even positions train, odd test."""
-    num_points: int = 2000
+    num_points: int = setting(2000, integer(1))
     """Seed points sampled from the surfaces seen by the train views."""
-    point_noise: float = 0.01
+    point_noise: float = setting(0.01, real(0.0))
     """Standard deviation of the Gaussian noise on seed points, scene units (the scene is about 9 units wide)."""
     demo_cache_dir: Path | None = None
     """Where generated scenes go; None: ``$KC_SPLATFACTO_CACHE/demo`` (``~/.cache/kc_splatfacto/demo``)."""

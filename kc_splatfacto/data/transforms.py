@@ -57,6 +57,7 @@ from kc_splatfacto.data.outputs import DataparserOutputs
 from kc_splatfacto.data.paths import inside_folder
 from kc_splatfacto.data.ply import read_ply_points
 from kc_splatfacto.registry import DataParserSpecification
+from kc_splatfacto.settings import integer, real, setting
 
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
 DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")  # OpenCV's coefficient order
@@ -69,9 +70,9 @@ class TransformsDataParserConfig(DataParserConfig):
 
     eval_mode: Literal["interval", "fraction", "filename", "all"] = "interval"
     """Split without explicit lists: "interval", "fraction", "filename" or "all" (as the COLMAP parser)."""
-    eval_interval: int = 8
+    eval_interval: int = setting(8, integer(1))
     """Every ``eval_interval``-th image is eval (eval_mode "interval")."""
-    train_split_fraction: float = 0.9
+    train_split_fraction: float = setting(0.9, real(0.0, 1.0, low_open=True))
     """Fraction of images for training (eval_mode "fraction")."""
     load_3d_points: bool = True
     """Seed points from ``ply_file_path`` when the file names one."""

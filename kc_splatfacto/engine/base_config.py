@@ -16,6 +16,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from kc_splatfacto.errors import UserError
+from kc_splatfacto.settings import SEED_MAX, integer, real, setting
+
 
 def _gsplat_importable() -> bool:
     try:
@@ -29,19 +32,19 @@ def _gsplat_importable() -> bool:
 class MachineConfig:
     """Where and how reproducibly to run."""
 
-    seed: int = 42
+    seed: int = setting(42, integer(0, SEED_MAX))
     """seed of torch, numpy and python's random"""
     device: str = "auto"
     """'auto' (CUDA when available and gsplat imports, else CPU), 'cpu', 'cuda', 'cuda:1', ..."""
 
     def resolve_device(self) -> torch.device:
         if self.device == "auto":
-            # CUDA only pays with gsplat's kernels: the rasterization backend "auto" refuses CUDA tensors without
+            # CUDA only pays with gsplat's kernels: the rasterizer "auto" refuses CUDA tensors without
             # gsplat (the compiled rasterizer is CPU-only), so without gsplat training stays on the CPU
             return torch.device("cuda" if torch.cuda.is_available() and _gsplat_importable() else "cpu")
         device = torch.device(self.device)
         if device.type == "cuda" and not torch.cuda.is_available():
-            raise RuntimeError(f"--machine.device {self.device}: CUDA is not available here; use 'cpu' or 'auto'")
+            raise UserError(f"--machine.device {self.device}: CUDA is not available here; use 'cpu' or 'auto'")
         return device
 
     def seed_everything(self) -> None:
@@ -54,15 +57,15 @@ class MachineConfig:
 class LoggingConfig:
     """What the trainer writes while it runs."""
 
-    steps_per_log: int = 10
+    steps_per_log: int = setting(10, integer(1))
     """train records in metrics.jsonl (with per-band kurtosis) every this many steps"""
     progress_bar: bool = True
     """progress on stderr: a tqdm bar on a terminal, else a line every ``steps_per_progress_line`` steps"""
-    steps_per_progress_line: int = 100
+    steps_per_progress_line: int = setting(100, integer(1))
     """when stderr is not a terminal (a log file, CI): one progress line every this many steps"""
     profile_phases: bool = False
     """synchronize and time each phase of a step (render, losses, backward, optimizer, density control)"""
-    steps_per_gradient_shares: int = 100
+    steps_per_gradient_shares: int = setting(100, integer(0))
     """every this many steps a ``gradient_shares`` record: each loss term's image-gradient norm relative to the
     photometric term's (engine/gradient_shares.py; ~60 ms on a 192x128 CPU render, excluded from train_s); 0 turns it off"""
     tensorboard: bool = False
@@ -73,7 +76,7 @@ class LoggingConfig:
     ``pip install 'kc-splatfacto[wandb]'``"""
     wandb_project: str = "kc-splatfacto"
     """the wandb project the offline run belongs to"""
-    eval_images: int = 1
+    eval_images: int = setting(1, integer(0))
     """eval views whose render beside the ground truth tensorboard/wandb receive at each evaluation (0: none)"""
 
 
@@ -85,11 +88,11 @@ class ViewerConfig:
     """serve the scene in the browser while it trains (needs ``pip install 'kc-splatfacto[viewer]'``)"""
     host: str = "127.0.0.1"
     """address the viewer listens on ('0.0.0.0' for other machines)"""
-    port: int = 7007
+    port: int = setting(7007, integer(0, 65535))
     """port of the viewer (nerfstudio's default); the next free one when taken"""
-    max_render_pixels: int = 160 * 120
+    max_render_pixels: int = setting(160 * 120, integer(1))
     """the largest render the viewer asks of the rasterizer while training (the browser scales it up)"""
-    render_share: float = 0.05
+    render_share: float = setting(0.05, real(0.0, 1.0, low_open=True))
     """at most this fraction of the wall-clock time goes into viewer renders while training (nerfstudio's
     'train util' is 1 minus it)"""
     quit_on_train_completion: bool = False

@@ -15,7 +15,9 @@ sent could run arbitrary code. :class:`ConfigLoader` is PyYAML's ``SafeLoader`` 
 - ``!!python/tuple``.
 
 Every other tag is a :class:`~kc_splatfacto.errors.ConfigFileError` naming the file and line, and so is a key the
-config class has no field for (with a did-you-mean). The rebuilt config then goes through
+config class has no field for (with a did-you-mean). A config class whose fields moved since earlier files were
+written reads them through its ``upgrade_fields(fields: dict) -> dict`` classmethod (the model config's frequency-loss
+settings, once model fields, now nested in ``frequency``), before that check. The rebuilt config then goes through
 :func:`kc_splatfacto.engine.validation.validate_config`: a value of the wrong type or out of range names the file and
 the dotted field.
 """
@@ -99,17 +101,20 @@ def _construct_dataclass(loader: ConfigLoader, suffix: str, node: yaml.Node) -> 
     cls = _allowed_class(loader, suffix, node)
     if not isinstance(node, yaml.MappingNode):
         raise ConfigFileError(f"{_where(loader, node)}: {suffix} must be a mapping of its fields")
+    key_nodes = {key.value: key for key, _ in node.value if isinstance(key, yaml.ScalarNode)}
+    state = loader.construct_mapping(node, deep=True)
+    upgrade = getattr(cls, "upgrade_fields", None)
+    if callable(upgrade):  # a file written by an earlier version, whose fields this class has since moved
+        state = upgrade(dict(state))
     init_fields = {f.name for f in dataclasses.fields(cls) if f.init}
-    for key_node, _ in node.value:  # an unknown key is a typo or another version's field: never silently dropped
-        key = key_node.value if isinstance(key_node, yaml.ScalarNode) else None
+    for key in state:  # an unknown key is a typo or another version's field: never silently dropped
         if key not in init_fields:
             close = difflib.get_close_matches(str(key), sorted(init_fields), n=1)
             hint = f" (did you mean '{close[0]}'?)" if close else ""
             raise ConfigFileError(
-                f"{_where(loader, key_node)}: {cls.__name__} has no field '{key}'{hint}: fix or remove that line "
-                f"(its fields: {', '.join(sorted(init_fields))})"
+                f"{_where(loader, key_nodes.get(key, node))}: {cls.__name__} has no field '{key}'{hint}: fix or "
+                f"remove that line (its fields: {', '.join(sorted(init_fields))})"
             )
-    state = loader.construct_mapping(node, deep=True)
     try:
         return cls(**state)
     except Exception as exc:  # noqa: BLE001  a __post_init__ refusing a value, a missing required field

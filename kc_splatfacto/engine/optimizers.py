@@ -19,6 +19,8 @@ from dataclasses import dataclass, field
 
 import torch
 
+from kc_splatfacto.settings import integer, real, setting
+
 ADAM_EPS = 1e-15
 SPLATFACTO_SCHEDULE_STEPS = 30000
 """length of Splatfacto's nominal schedule (its means learning-rate decay and ``max_num_iterations``)"""
@@ -28,9 +30,9 @@ SPLATFACTO_SCHEDULE_STEPS = 30000
 class AdamOptimizerConfig:
     """Adam for one parameter group."""
 
-    lr: float = 1e-3
-    eps: float = ADAM_EPS
-    weight_decay: float = 0.0
+    lr: float = setting(1e-3, real(0.0, low_open=True))
+    eps: float = setting(ADAM_EPS, real(0.0, low_open=True))
+    weight_decay: float = setting(0.0, real(0.0))
 
     fused: bool = True
     """torch's fused Adam kernel (CPU and CUDA; same update, ~5x faster than the per-tensor loop on CPU here)"""
@@ -49,11 +51,11 @@ class ExponentialDecaySchedulerConfig:
     other step-based schedule) and nothing else, so the schedule never depends on the run's length.
     """
 
-    lr_final: float = 1e-6
-    max_steps: int | None = SPLATFACTO_SCHEDULE_STEPS
+    lr_final: float = setting(1e-6, real(0.0, low_open=True))
+    max_steps: int | None = setting(SPLATFACTO_SCHEDULE_STEPS, integer(1, optional=True))
     """nominal decay length (None, as in configs saved before schedules were nominal, reads as 30000)"""
-    warmup_steps: int = 0
-    lr_pre_warmup: float = 1e-8
+    warmup_steps: int = setting(0, integer(0))
+    lr_pre_warmup: float = setting(1e-8, real(0.0))
 
     def setup(self, optimizer: torch.optim.Optimizer, steps_scale: float = 1.0) -> torch.optim.lr_scheduler.LambdaLR:
         if steps_scale <= 0:

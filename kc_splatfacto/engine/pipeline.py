@@ -1,19 +1,23 @@
-"""The pipeline (nerfstudio's ``VanillaPipeline``): owns the data manager and the model.
+"""The pipeline (nerfstudio's ``VanillaPipeline``): owns the data manager and the model, and the step's state.
 
-Through the pipeline the trainer takes a step's losses (:meth:`Pipeline.get_train_loss_dict`: ``datamanager.next_train()``
-gives a batch (camera, uint8 image, index) -> ``model.get_outputs(camera)`` renders it -> ``model.get_loss_dict(outputs,
-batch)`` compares render and ground truth), its logged metrics, the evaluation of a split and the checkpointed state
-(Gaussians, density-control statistics, image order). Beside it the trainer uses ``pipeline.model`` directly for what
-is training state rather than the scene's: the parameters its optimizers step, density control after the step
-(``step_post_backward``) and the removal of non-finite Gaussians; and ``pipeline.datamanager`` for the checks before
-the first step and ``dataparser_transforms.json``. ``load_run`` (kc-eval, kc-render, kc-export, kc-viewer) builds the
-same pipeline and uses its model and datasets.
+A training step through the pipeline, as the trainer takes it (the trainer times the calls and owns the optimizers):
+
+1. :meth:`Pipeline.train_view`: the model is set to the step (``model.set_step``, the one place a step is set), the
+   data manager draws the next view (camera, uint8 image, index), the model renders it (``model.get_outputs``) and
+   density control's pre-backward hook runs on what rendering produced (``model.before_backward(outputs)``);
+2. :meth:`Pipeline.train_losses`: the render against the ground truth (``model.get_loss_dict``);
+3. the trainer's backward and optimizer step, then :meth:`Pipeline.after_optimizer_step`: density control with the
+   same ``outputs`` (``model.step_post_backward``).
+
+Besides: the logged training metrics, the evaluation of a split and the checkpointed state (Gaussians,
+density-control statistics, image order). ``load_run`` (kc-eval, kc-render, kc-export, kc-viewer) builds the same
+pipeline and uses its model and datasets.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 import torch
 
@@ -60,27 +64,29 @@ class Pipeline:
     def device(self) -> torch.device:
         return self.model.device
 
-    def get_train_loss_dict(
-        self, step: int, lap: Callable[[str], None] | None = None
-    ) -> tuple[dict[str, Any], dict[str, torch.Tensor], dict[str, Any]]:
-        """Render the next training view and its losses.
-
-        Args:
-            step: 0-based index of the optimization step being taken (every schedule reads it).
-            lap: called with "render" after rendering and "losses" after the losses (phase timing).
-        Returns:
-            (outputs, loss_dict, batch). A non-finite render gives non-finite losses, not an error: the trainer checks
-            the loss and the gradients once after backward (one host synchronisation per step, not one per check).
-        """
-        self.model.step = step
+    def train_view(self, step: int) -> tuple[dict[str, Any], dict[str, Any]]:
+        """Step 1 of a training step (module docstring): the model set to ``step`` (0-based), the next training
+        view drawn and rendered, ready for backward. Returns (outputs, batch)."""
+        self.model.set_step(step)
         batch = self.datamanager.next_train()
         outputs = self.model.get_outputs(batch["camera"])
-        if lap is not None:
-            lap("render")
-        loss_dict = self.model.get_loss_dict(outputs, batch)
-        if lap is not None:
-            lap("losses")
-        return outputs, loss_dict, batch
+        self.model.before_backward(outputs)
+        return outputs, batch
+
+    def train_losses(self, outputs: dict[str, Any], batch: dict[str, Any]) -> dict[str, torch.Tensor]:
+        """Step 2: the loss terms of a training render. A non-finite render gives non-finite losses, not an error:
+        the trainer checks the loss and the gradients once after backward (one host synchronisation per step)."""
+        return self.model.get_loss_dict(outputs, batch)
+
+    def get_train_loss_dict(self, step: int) -> tuple[dict[str, Any], dict[str, torch.Tensor], dict[str, Any]]:
+        """:meth:`train_view` then :meth:`train_losses` (nerfstudio's name): (outputs, loss_dict, batch)."""
+        outputs, batch = self.train_view(step)
+        return outputs, self.train_losses(outputs, batch), batch
+
+    def after_optimizer_step(self, outputs: dict[str, Any], optimizers: dict[str, torch.optim.Optimizer]) -> dict[str, int]:
+        """Step 3: density control after the optimizer step, from the step's ``outputs``; the counts of what it
+        did (duplicated, split, pruned, opacity_reset)."""
+        return self.model.step_post_backward(optimizers, outputs)
 
     def get_train_metrics_dict(self, outputs: dict[str, Any], batch: dict[str, Any]) -> dict[str, Any]:
         """The logged training metrics of one step (PSNR, Gaussian count, per-band kurtosis of render and GT)."""
@@ -112,4 +118,4 @@ class Pipeline:
             }
         if "datamanager" in state:
             self.datamanager.load_state_dict(state["datamanager"])
-        self.model.step = int(step)
+        self.model.set_step(step)

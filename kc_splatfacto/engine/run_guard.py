@@ -1,9 +1,8 @@
 """Checks that run before a training run loads any data, and the resume rules.
 
 :func:`plan_run` refuses settings that would silently do nothing or the wrong thing, before the (slow) scene load:
-- any config field of the wrong type or out of range (:mod:`kc_splatfacto.engine.validation`);
-- ``max_num_iterations`` below 1 (a run folder with no checkpoint);
-- an output folder that cannot be written;
+- an output folder that cannot be written (every field's type and range were checked when the trainer was built:
+  :mod:`kc_splatfacto.engine.validation`);
 - a resume (``load_dir``) whose checkpoint is past ``max_num_iterations`` (it would train nothing);
 - a resume of another scene's, method's or dataparser's run: it would overwrite that run's ``config.yml`` and
   ``dataparser_transforms.json`` and delete its checkpoints. ``resume_from_other_run`` allows it, into a *new* run
@@ -44,7 +43,6 @@ from kc_splatfacto.engine.checkpoints import (
 )
 from kc_splatfacto.engine.config_file import read_config_file
 from kc_splatfacto.engine.datamanager import DataManager
-from kc_splatfacto.engine.validation import validate_config
 from kc_splatfacto.errors import ResumeError, UserError
 from kc_splatfacto.metrics import SSIM_WINDOW
 
@@ -74,15 +72,9 @@ class RunPlan:
     trimmed_records: int = 0
 
 
-def check_settings(config: TrainerConfig) -> None:
-    """Settings that are wrong whatever the scene (every field's type and range, engine/validation.py): refused
-    before anything is loaded or written."""
-    iterations = config.max_num_iterations
-    if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
-        raise UserError(f"--max-num-iterations must be at least 1, got {iterations!r}")
-    if not isinstance(config.steps_per_save, int) or config.steps_per_save < 1:
-        raise UserError(f"--steps-per-save must be at least 1, got {config.steps_per_save!r}")
-    validate_config(config)
+def check_output_dir(config: TrainerConfig) -> None:
+    """The runs' root folder can be written (every field's type and range were checked when the trainer was built:
+    engine/validation.py)."""
     check_writable_folder(Path(config.output_dir), "--output-dir")
 
 
@@ -150,7 +142,7 @@ RESUMABLE_FIELDS = (
     "steps_per_eval_all_images", "eval_at_steps", "final_lpips_nets", "eval_lpips_nets", "save_only_latest_checkpoint", "load_dir",
     "load_step", "resume_from_other_run", "max_consecutive_bad_steps", "machine.device", "logging",
     "pipeline.datamanager.data", "pipeline.datamanager.dataparser", "pipeline.datamanager.eval_split",
-    "pipeline.model.rasterization_backend",
+    "pipeline.model.rasterizer",
 )
 #: dataparser fields that say where, not what: compared as the scene (data) or not at all (cache_dir)
 PARSER_LOCATION_FIELDS = ("data", "cache_dir", "demo_cache_dir")
@@ -229,7 +221,7 @@ def plan_run(config: TrainerConfig, map_location: Any = "cpu") -> RunPlan:
     """The checks of this module; returns the run's resolved dataparser, where the run writes and the checkpoint it
     resumes from. A scene that cannot be read (none given, unknown format) is refused here, before any checkpoint
     loads."""
-    check_settings(config)
+    check_output_dir(config)
     dataparser = config.pipeline.datamanager.resolve_dataparser()
     if config.load_dir is None:
         return RunPlan(dataparser=dataparser)
@@ -327,7 +319,7 @@ def announce_seed_points(datamanager: DataManager, model_config: SplatfactoModel
 __all__ = [
     "RunPlan",
     "announce_seed_points",
-    "check_settings",
+    "check_output_dir",
     "check_training_image_sizes",
     "check_writable_folder",
     "comparable_dataparser",

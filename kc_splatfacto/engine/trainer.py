@@ -2,7 +2,9 @@
 
 Step convention: ``step`` in checkpoints and ``metrics.jsonl`` is the number of optimization steps completed
 (``step-000000300.ckpt`` holds the state after 300 steps; an eval record with step 0 is the initial render). Inside an
-iteration ``model.step`` is the 0-based index of the step being taken, which every schedule reads.
+iteration ``model.step`` is the 0-based index of the step being taken, which every schedule reads; the pipeline sets
+it (``Pipeline.train_view``). The trainer optimises, times and logs; it reaches the model only through public methods
+(its parameter groups, their gradient peaks, the removal of non-finite Gaussians, its schedules' state).
 
 Stiff cases: a non-finite render, loss or gradient skips the step (no update, no density-control statistics; the
 learning-rate schedule still advances so the run keeps its length); Gaussians whose parameters are non-finite are
@@ -50,7 +52,10 @@ from kc_splatfacto.engine.run_guard import (
     recorded_dataparser,
 )
 from kc_splatfacto.engine.signals import install_stop_handlers, restore_handlers
+from kc_splatfacto.engine.validation import validate_config
+from kc_splatfacto.lpips import NETWORKS
 from kc_splatfacto.render.errors import NonFiniteInputError
+from kc_splatfacto.settings import drawn_from, each, integer, path_component, setting
 
 GRAD_OVERFLOW = 1e18
 """a gradient this large would overflow Adam's squared-gradient average in float32 (1e36 < 3.4e38 just fits)"""
@@ -58,8 +63,9 @@ PARAMETER_SCAN_EVERY = 100
 """steps between full scans of the parameters for NaN/inf (the rasterizer reports what it reads every step)"""
 PHASES = ("render", "losses", "backward", "optimizer", "density_control")
 
-# a skipped (non-finite) step still advances the schedules, which torch reports as a misuse; it is deliberate here
-warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step\\(\\)` before `optimizer.step\\(\\)`")
+# a skipped (non-finite) step still advances the schedules, which torch reports as a misuse when no optimizer step
+# came before (a bad first step); it is deliberate here
+_SCHEDULE_BEFORE_OPTIMIZER = "Detected call of `lr_scheduler.step\\(\\)` before `optimizer.step\\(\\)`"
 
 
 TIMESTAMP_FORMAT = "%Y-%m-%d_%H%M%S"
@@ -72,35 +78,35 @@ class TrainerConfig:
 
     method_name: str = "splatfacto"
     """registered method this config came from (a run folder component)"""
-    experiment_name: str | None = None
+    experiment_name: str | None = setting(None, path_component())
     """run folder component; defaults to the scene folder's name"""
     output_dir: Path = Path("outputs")
     """root of the run folders"""
-    timestamp: str = "{timestamp}"
+    timestamp: str = setting("{timestamp}", path_component())
     """run folder component; '{timestamp}' is replaced by the start time"""
     data: Path | None = None
     """the scene: alias for --pipeline.datamanager.data (folded into it when the trainer is built)"""
-    max_num_iterations: int = 30000
+    max_num_iterations: int = setting(30000, integer(1))
     """number of optimization steps"""
-    steps_per_save: int = 2000
+    steps_per_save: int = setting(2000, integer(1))
     """write a checkpoint every this many steps (and at the last one)"""
-    steps_per_eval_all_images: int = 1000
+    steps_per_eval_all_images: int = setting(1000, integer(0))
     """evaluate the whole eval split every this many steps (0 turns it off; the last step is always evaluated)"""
-    eval_at_steps: tuple[int, ...] = ()
+    eval_at_steps: tuple[int, ...] = setting((), each(integer(0)))
     """extra evaluation steps (e.g. log-spaced ones for quality-against-time reports)"""
-    final_lpips_nets: tuple[str, ...] = FINAL_LPIPS_NETS
+    final_lpips_nets: tuple[str, ...] = setting(FINAL_LPIPS_NETS, drawn_from(*NETWORKS))
     """further LPIPS backbones of the last step's evaluation (``lpips_vgg`` in its record; every evaluation has alex)"""
-    eval_lpips_nets: tuple[str, ...] = ()
+    eval_lpips_nets: tuple[str, ...] = setting((), drawn_from(*NETWORKS))
     """further LPIPS backbones of every evaluation (a study's LPIPS-VGG along training; ~10x AlexNet's time)"""
     save_only_latest_checkpoint: bool = True
     """delete older checkpoints after writing a new one"""
     load_dir: Path | None = None
     """resume from the newest checkpoint in this nerfstudio_models folder (or a run folder)"""
-    load_step: int | None = None
+    load_step: int | None = setting(None, integer(0, optional=True))
     """resume from this step's checkpoint instead of the newest"""
     resume_from_other_run: bool = False
     """allow --load-dir of another scene's, method's or dataparser's run (continued in a new run folder)"""
-    max_consecutive_bad_steps: int = 5
+    max_consecutive_bad_steps: int = setting(5, integer(1))
     """stop with an error after this many non-finite steps in a row (the last good state is saved)"""
     machine: MachineConfig = field(default_factory=MachineConfig)
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
@@ -128,14 +134,6 @@ class TrainerConfig:
 
     def setup(self) -> Trainer:
         return Trainer(self)
-
-
-def _max_abs(tensor: torch.Tensor) -> torch.Tensor:
-    """max |x| (NaN if any x is NaN) in one read of the tensor: aminmax, not an |x| copy then a max."""
-    if tensor.numel() == 0:
-        return tensor.new_zeros(())
-    low, high = torch.aminmax(tensor)
-    return torch.maximum(-low, high)
 
 
 _T = TypeVar("_T")
@@ -186,6 +184,7 @@ class Trainer:
         # config stays as given, and config.yml records the resolved one
         config = copy.deepcopy(config)
         config.resolve_aliases()
+        validate_config(config)  # once per run, before anything is resolved, loaded or written
         self.config = config
         self.device = config.machine.resolve_device()
         # set by setup(): read through the properties below, which say so when setup() has not run
@@ -200,6 +199,9 @@ class Trainer:
         self.phase_steps = 0
         self.last_eval: dict[str, Any] | None = None
         self.last_losses: Mapping[str, float] = {}  # the last step's loss terms (for callbacks)
+        self._writer: MetricsWriter | None = None  # opened by train()
+        self._last_outputs: dict[str, Any] | None = None  # the last good step's render and batch (train records)
+        self._last_batch: dict[str, Any] | None = None
         self._stop_requested = False
         self._elapsed_offset = 0.0
         self._train_s = 0.0
@@ -227,6 +229,23 @@ class Trainer:
     @property
     def dataparser(self) -> DataParserConfig:
         return _set_up(self._dataparser, "dataparser")
+
+    @property
+    def writer(self) -> MetricsWriter:
+        """The run's ``metrics.jsonl`` writer (and its sinks), open while :meth:`train` runs."""
+        if self._writer is None:
+            raise RuntimeError("Trainer.writer is opened by Trainer.train(), which has not started")
+        return self._writer
+
+    @property
+    def train_seconds(self) -> float:
+        """Wall-clock seconds spent in training steps so far (evaluation, checkpoints and logging left out)."""
+        return self._train_s
+
+    @property
+    def stop_requested(self) -> bool:
+        """Whether Ctrl-C, SIGTERM or :meth:`request_stop` asked the run to stop after the current step."""
+        return self._stop_requested
 
     @property
     def model(self):
@@ -272,7 +291,7 @@ class Trainer:
         # nominal schedules (nerfstudio's): steps_scale only, never max_num_iterations, so a short run is the first
         # steps of the full one
         self.optimizers, self.schedulers = self.config.optimizers.setup(
-            self.model.gauss_params, steps_scale=self.config.pipeline.model.steps_scale
+            self.model.parameter_groups(), steps_scale=self.config.pipeline.model.steps_scale
         )
 
     # ----------------------------------------------------------------------------------------------- checkpoints
@@ -365,8 +384,7 @@ class Trainer:
 
     # ----------------------------------------------------------------------------------------------- one step
     def _bad_step(self, step: int, reason: str) -> None:
-        for param in self.model.gauss_params.values():
-            param.grad = None
+        self.model.zero_grad(set_to_none=True)
         self._bad_in_a_row += 1
         self.writer.write({"kind": "bad_step", "step": step, "elapsed_s": self._elapsed(), "train_s": self._train_s,
                            "reason": reason, "consecutive": self._bad_in_a_row})
@@ -383,8 +401,7 @@ class Trainer:
         """Why the step just back-propagated must be skipped, or None: a non-finite render, loss or gradient, or a
         gradient large enough to overflow Adam's squared average. One host synchronisation on a good step (one flag
         reduced on the device); the reason is worked out only for a bad one."""
-        params = [(k, p) for k, p in self.model.gauss_params.items() if p.grad is not None]
-        peaks = torch.stack([_max_abs(p.grad) for _, p in params]) if params else loss.new_zeros(1)
+        names, peaks = self.model.gradient_peaks()
         good = (torch.isfinite(rgb).all() & torch.isfinite(loss) & torch.isfinite(peaks).all()
                 & (peaks.max() < GRAD_OVERFLOW))  # a non-finite render is skipped even where its loss is finite
         if bool(good):
@@ -394,7 +411,7 @@ class Trainer:
         if not bool(torch.isfinite(loss)):
             terms = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in loss_dict.items())
             return f"non-finite loss ({terms})"
-        bad = [k for (k, _), v in zip(params, peaks.tolist()) if not (math.isfinite(v) and v < GRAD_OVERFLOW)]
+        bad = [k for k, v in zip(names, peaks.tolist()) if not (math.isfinite(v) and v < GRAD_OVERFLOW)]
         return f"non-finite or overflowing gradient of {bad}"
 
     def _forward_backward(self, step: int) -> tuple[str | None, Any, dict[str, torch.Tensor], Any]:
@@ -410,12 +427,15 @@ class Trainer:
         if removed:  # the step is skipped before its training view is drawn: the view goes to the next step
             return f"non-finite parameters: {removed} Gaussians removed", None, {}, None
         try:
-            outputs, loss_dict, batch = self.pipeline.get_train_loss_dict(step, lap=self._lap)
+            outputs, batch = self.pipeline.train_view(step)
         except NonFiniteInputError:
             removed = model.remove_non_finite_gaussians(self.optimizers)
             if not removed:  # a non-finite camera, not a parameter: a real error
                 raise
             return f"non-finite parameters: {removed} Gaussians removed", None, {}, None
+        self._lap("render")
+        loss_dict = self.pipeline.train_losses(outputs, batch)
+        self._lap("losses")
         loss = torch.stack(list(loss_dict.values())).sum()
         self._log_gradient_shares(step + 1, loss_dict, outputs["rgb"], loss)
         self._lap_start = time.perf_counter()  # the shares are logging, not a phase of the step
@@ -426,8 +446,6 @@ class Trainer:
     def train_iteration(self, step: int) -> Mapping[str, float]:
         """Take optimization step ``step`` (0-based). Returns the loss terms and ``loss`` as a :class:`StepLosses`
         (read from the device only when asked; empty for a skipped step)."""
-        model = self.model
-        model.step = step
         self._lap_start = time.perf_counter()
         bad, outputs, loss_dict, batch = self._forward_backward(step)
         if bad is None:
@@ -435,13 +453,16 @@ class Trainer:
                 optimizer.step()
                 optimizer.zero_grad(set_to_none=True)
             self._lap("optimizer")
-            report = model.step_post_backward(self.optimizers, step)
+            report = self.pipeline.after_optimizer_step(outputs, self.optimizers)
             self._lap("density_control")
             if any(report.values()):
                 self.writer.write({"kind": "densify", "step": step + 1, "elapsed_s": self._elapsed(),
-                                   "train_s": self._train_s, "gaussian_count": model.num_points, **report})
-        for scheduler in self.schedulers.values():
-            scheduler.step()
+                                   "train_s": self._train_s, "gaussian_count": self.model.num_points, **report})
+            self._advance_schedules()
+        else:
+            with warnings.catch_warnings():  # only around a skipped step: a filter change re-arms once-only warnings
+                warnings.filterwarnings("ignore", message=_SCHEDULE_BEFORE_OPTIMIZER)
+                self._advance_schedules()
         self.phase_steps += 1
         if bad is not None:
             self._bad_step(step + 1, bad)
@@ -449,6 +470,10 @@ class Trainer:
         self._bad_in_a_row = 0
         self._last_outputs, self._last_batch = outputs, batch
         return StepLosses({k: v.detach() for k, v in loss_dict.items()})
+
+    def _advance_schedules(self) -> None:
+        for scheduler in self.schedulers.values():
+            scheduler.step()
 
     # ----------------------------------------------------------------------------------------------- the loop
     def train(self) -> Path:
@@ -459,7 +484,7 @@ class Trainer:
         # (no warnings.catch_warnings around the loop: mutating filters re-enables once-only warnings every step)
         recorded = recorded_config(cfg, self.dataparser) if cfg.logging.wandb else None
         sinks = logging_sinks(cfg.logging, self.run_dir, self.pipeline, recorded)
-        self.writer = MetricsWriter(self.run_dir / "metrics.jsonl", sinks=[*sinks, *self.record_sinks])
+        self._writer = MetricsWriter(self.run_dir / "metrics.jsonl", sinks=[*sinks, *self.record_sinks])
         self._t0 = time.perf_counter()
         previous_handlers = install_stop_handlers(self._on_sigint)  # SIGINT and SIGTERM: save and return
         bar = ProgressBar(cfg.max_num_iterations, self.start_step, enabled=cfg.logging.progress_bar,
@@ -526,11 +551,11 @@ class Trainer:
         record: dict[str, Any] = {"kind": "train", "step": step, "elapsed_s": self._elapsed(), "train_s": self._train_s,
                                   "train_cpu_s": self._train_cpu_s}
         record.update(losses)
+        assert self._last_outputs is not None and self._last_batch is not None  # a good step came before
         metrics = self.pipeline.get_train_metrics_dict(self._last_outputs, self._last_batch)
         record.update(metrics)
         record["lr_means"] = self.optimizers["means"].param_groups[0]["lr"]
-        record["sh_degree"] = self.model.sh_degree_to_use()
-        record["train_downscale"] = self.model.get_downscale_factor()
+        record.update(self.model.schedule_state())
         self.writer.write(record)
 
 

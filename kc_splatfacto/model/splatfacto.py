@@ -1,7 +1,7 @@
 """The Splatfacto-like model (nerfstudio 1.1.5's ``SplatfactoModel``) with KC-3DGS's wavelet-domain losses.
 
-``kc-splatfacto`` is this model with non-zero ``wavelet_weight``, ``kc_weight`` and ``cbc_weight``; with all three at
-zero it is the ``splatfacto`` baseline (loss 0.8 L1 + 0.2 (1 - SSIM)).
+``kc-splatfacto`` is this model with non-zero ``frequency`` weights (``wavelet_weight``, ``kc_weight``, ``cbc_weight``:
+:class:`~kc_splatfacto.losses.frequency.FrequencyLossConfig`); with all three at zero it is the ``splatfacto`` baseline (loss 0.8 L1 + 0.2 (1 - SSIM)).
 
 ``steps_scale`` multiplies every step-based schedule (warm-up, refinement period, opacity reset, stop of splitting and
 of screen-size culling, SH degree interval, resolution schedule): ``steps_scale=0.02`` plays Splatfacto's 30000-step
@@ -10,6 +10,7 @@ schedule in 600 steps, for short CPU runs.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -24,8 +25,9 @@ from kc_splatfacto.model import ops
 from kc_splatfacto.model.gaussians import init_gaussian_params
 from kc_splatfacto.model.strategy import DefaultStrategy, NoGaussiansLeftError
 from kc_splatfacto.render import SplitSH, rasterization
-from kc_splatfacto.render.constants import FAR_PLANE, NEAR_PLANE
-from kc_splatfacto.render.rasterization import RenderMode
+from kc_splatfacto.render.constants import FAR_PLANE, NEAR_PLANE, SH_MAX_DEGREE
+from kc_splatfacto.render.rasterization import Rasterizer, RenderMode
+from kc_splatfacto.settings import integer, real, setting
 
 EVAL_BACKGROUND = (0.1490, 0.1647, 0.2157)
 """Splatfacto's fixed background outside training when training uses random backgrounds (viser's grey)"""
@@ -33,8 +35,12 @@ SCALE_REG_WEIGHT = 0.1
 """PhysGaussian scale regularization weight in Splatfacto"""
 SCALE_REG_EVERY = 10
 """Splatfacto evaluates the scale regularizer every 10th step only"""
-_PAPER = FrequencyLossConfig()
-"""the paper's frequency-loss settings: the defaults of the model config's DWT fields (its weights default to 0)"""
+
+
+def scale_steps(steps: int, steps_scale: float, at_least: int = 1) -> int:
+    """A nominal step count compressed by ``steps_scale``: round(steps x steps_scale), at least ``at_least`` (the one
+    rounding of every step-based schedule: the model's and the optimizers')."""
+    return max(at_least, int(round(steps * steps_scale)))
 
 
 @dataclass(frozen=True)
@@ -54,98 +60,95 @@ class StepSchedule:
 class SplatfactoModelConfig:
     """Splatfacto 1.1.5's defaults, plus KC-3DGS's frequency-domain losses (off by default)."""
 
-    warmup_length: int = 500
+    warmup_length: int = setting(500, integer(0))
     """period of steps where refinement is turned off"""
-    refine_every: int = 100
+    refine_every: int = setting(100, integer(1))
     """period of steps where Gaussians are culled and densified"""
-    resolution_schedule: int = 3000
+    resolution_schedule: int = setting(3000, integer(1))
     """training starts at 1/2^num_downscales resolution; every this many steps the resolution doubles"""
     background_color: Literal["random", "black", "white"] = "random"
     """background the render is composited over in training ('random': a new colour every step, viser's grey
     outside training); RGBA ground truth is composited over the same one"""
-    num_downscales: int = 2
+    num_downscales: int = setting(2, integer(0, 8))
     """training starts at 1/2^num_downscales resolution (see resolution_schedule)"""
-    cull_alpha_thresh: float = 0.1
+    cull_alpha_thresh: float = setting(0.1, real(0.0, 1.0))
     """opacity below which Gaussians are culled"""
-    cull_scale_thresh: float = 0.5
+    cull_scale_thresh: float = setting(0.5, real(0.0, low_open=True))
     """scale (x scene scale) above which Gaussians are culled"""
-    reset_alpha_every: int = 30
+    reset_alpha_every: int = setting(30, integer(1))
     """every this many refinements, reset the opacities"""
-    densify_grad_thresh: float = 0.0008
+    densify_grad_thresh: float = setting(0.0008, real(0.0, low_open=True))
     """threshold of the (absolute) 2D mean gradient for densification"""
     use_absgrad: bool = True
     """use the absolute gradient (AbsGS) for densification"""
-    densify_size_thresh: float = 0.01
+    densify_size_thresh: float = setting(0.01, real(0.0, low_open=True))
     """below this size (x scene scale) Gaussians are duplicated, otherwise split"""
-    n_split_samples: int = 2
+    n_split_samples: int = setting(2, integer(1))
     """number of Gaussians a split Gaussian becomes"""
-    max_num_gaussians: int | None = 2_000_000
+    max_num_gaussians: int | None = setting(2_000_000, integer(1, optional=True))
     """cap on densification (not in Splatfacto): beyond it only the highest-gradient candidates grow; None: no cap"""
-    sh_degree_interval: int = 1000
+    sh_degree_interval: int = setting(1000, integer(1))
     """every this many steps turn on another SH degree"""
-    cull_screen_size: float = 0.15
+    cull_screen_size: float = setting(0.15, real(0.0, low_open=True))
     """cull Gaussians larger than this fraction of the screen"""
-    split_screen_size: float = 0.05
+    split_screen_size: float = setting(0.05, real(0.0, low_open=True))
     """split Gaussians larger than this fraction of the screen"""
-    stop_screen_size_at: int = 4000
+    stop_screen_size_at: int = setting(4000, integer(0))
     """stop culling/splitting by screen size at this step"""
     random_init: bool = False
     """initialize randomly even when the scene has seed points"""
-    num_random: int = 50000
+    num_random: int = setting(50000, integer(1))
     """number of random initial Gaussians (random_init, or a scene without points)"""
-    random_scale: float = 10.0
+    random_scale: float = setting(10.0, real(0.0, low_open=True))
     """side (x scene scale) of the cube random initial Gaussians fill"""
-    ssim_lambda: float = 0.2
+    ssim_lambda: float = setting(0.2, real(0.0, 1.0))
     """weight of the D-SSIM term in the main loss (1 - ssim_lambda) L1 + ssim_lambda (1 - SSIM)"""
-    stop_split_at: int = 15000
+    stop_split_at: int = setting(15000, integer(0))
     """stop densification (splitting and duplication) at this step"""
-    sh_degree: int = 3
+    sh_degree: int = setting(3, integer(0, SH_MAX_DEGREE))
     """maximum degree of the spherical harmonics of the colours (0: plain RGB)"""
-    sh_views_per_coefficient: float = 0.0
+    sh_views_per_coefficient: float = setting(0.0, real(0.0))
     """> 0: the SH degree also follows the number of training views, the largest d <= sh_degree whose (d+1)^2
     coefficients per colour each have at least this many views (2: degree 1 on 12 views, 0 on 5, 3 from 32 views);
     0: sh_degree as given"""
     use_scale_regularization: bool = False
     """PhysGaussian's scale regularization (penalizes max/min scale ratios above max_gauss_ratio)"""
-    max_gauss_ratio: float = 10.0
+    max_gauss_ratio: float = setting(10.0, real(1.0))
     """largest max/min scale ratio the scale regularization tolerates"""
     output_depth_during_training: bool = False
     """render the expected depth in training too (evaluation always renders it)"""
     rasterize_mode: Literal["classic", "antialiased"] = "classic"
     """'antialiased': gsplat's 2D filter with opacity compensation (Mip-Splatting), 'classic': 3DGS's"""
-    rasterization_backend: Literal["auto", "cpu", "torch", "gsplat"] = "auto"
-    """'auto': gsplat on CUDA when installed, the numba CPU rasterizer otherwise"""
-    steps_scale: float = 1.0
+    rasterizer: Rasterizer = "auto"
+    """which rasterizer renders: 'auto' (gsplat on CUDA when installed, the compiled CPU one otherwise), 'cpu',
+    'torch' (the slow reference), 'gsplat'"""
+    steps_scale: float = setting(1.0, real(0.0, low_open=True))
     """multiplies every step-based schedule (see the module docstring)"""
-    wavelet_weight: float = 0.0
-    """weight of the wavelet L1 on detail subbands (KC-3DGS: 1e-3)"""
-    kc_weight: float = 0.0
-    """weight of the kurtosis-concentration loss (KC-3DGS: 1e-5)"""
-    cbc_weight: float = 0.0
-    """weight of the cross-band covariance loss (KC-3DGS: 1e-2)"""
-    wave: Literal["haar", "db1", "db2", "db3", "db4", "db5", "db6", "db7", "db8", "db9", "db10"] = _PAPER.wave  # type: ignore[assignment]
-    """orthogonal Daubechies wavelet of the DWT (KC-3DGS: db3)"""
-    wavelet_levels: int = _PAPER.wavelet_levels
-    """DWT levels (fewer where the image is too small for them, with a warning)"""
-    wavelet_mode: Literal["symmetric", "reflect", "zero", "periodization"] = _PAPER.wavelet_mode  # type: ignore[assignment]
-    """DWT boundary extension (pywt's names; docs/losses.md measures why symmetric)"""
-    wavelet_weighting: Literal["paper", "fine", "uniform"] = _PAPER.wavelet_weighting  # type: ignore[assignment]
-    """per-level weights of the wavelet L1: 'paper' 2^j (j=1 finest), 'fine' 2^(J-j+1), 'uniform' 1"""
-    kc_supervised: bool = _PAPER.kc_supervised
-    """KC compares the render's band kurtosis with the GT's (False: the unsupervised spread of the render alone)"""
-    cbc_supervised: bool = _PAPER.cbc_supervised
-    """CBC compares the render's cross-band covariance with the GT's (False: the render's alone)"""
-    cbc_correlation: bool = _PAPER.cbc_correlation
-    """CBC on correlations instead of covariances (the 'scaled CBC' ablation)"""
+    frequency: FrequencyLossConfig = setting(default_factory=FrequencyLossConfig.off)
+    """KC-3DGS's wavelet-domain losses (wavelet L1, KC, CBC) and their DWT; every weight 0 here (Splatfacto): the
+    kc-splatfacto methods set the paper's (FrequencyLossConfig's defaults)"""
+
+    @classmethod
+    def upgrade_fields(cls, fields: dict[str, Any]) -> dict[str, Any]:
+        """A ``config.yml`` of an earlier version held the frequency-loss settings as model fields (``kc_weight``,
+        ...): gathered into ``frequency`` (the settings such a file lacks are Splatfacto's: weights 0); and
+        ``rasterizer`` was ``rasterization_backend``."""
+        if "rasterization_backend" in fields and "rasterizer" not in fields:  # the field's name before
+            fields["rasterizer"] = fields.pop("rasterization_backend")
+        names = [field.name for field in dataclasses.fields(FrequencyLossConfig)]
+        flat = {name: fields.pop(name) for name in names if name in fields}
+        if flat and "frequency" not in fields:
+            fields["frequency"] = dataclasses.replace(FrequencyLossConfig.off(), **flat)
+        elif flat:  # both forms: hand-edited; put the flat names back so the reader names them as unknown
+            fields.update(flat)
+        return fields
 
     def scaled(self, steps: int) -> int:
         """A step count compressed by ``steps_scale`` (at least 1)."""
-        return max(1, int(round(steps * self.steps_scale)))
+        return scale_steps(steps, self.steps_scale)
 
     def step_schedule(self) -> StepSchedule:
         """Every step-based schedule with ``steps_scale`` applied (once: the model reads only this)."""
-        if not self.steps_scale > 0:
-            raise ValueError(f"steps_scale must be > 0, got {self.steps_scale}")
         return StepSchedule(
             warmup_length=self.scaled(self.warmup_length),
             refine_every=self.scaled(self.refine_every),
@@ -167,10 +170,6 @@ class SplatfactoModelConfig:
         while degree < self.sh_degree and (degree + 2) ** 2 * self.sh_views_per_coefficient <= num_views:
             degree += 1
         return degree
-
-    def frequency_loss_config(self) -> FrequencyLossConfig:
-        """The wavelet/KC/CBC settings of this model (its fields of the same names)."""
-        return FrequencyLossConfig.from_fields(self)
 
     def density_strategy(self, num_train_data: int) -> DefaultStrategy:
         """Density control as Splatfacto 1.1.5 configures gsplat's ``DefaultStrategy`` from these fields (step counts
@@ -206,6 +205,14 @@ class SplatfactoModelConfig:
         seed_points: tuple[torch.Tensor, torch.Tensor | None] | None = None,
     ) -> "SplatfactoModel":
         return SplatfactoModel(self, scene_scale=scene_scale, num_train_data=num_train_data, seed_points=seed_points)
+
+
+def _max_abs(tensor: torch.Tensor) -> torch.Tensor:
+    """max |x| (NaN if any x is NaN) in one read of the tensor: aminmax, not an |x| copy then a max."""
+    if tensor.numel() == 0:
+        return tensor.new_zeros(())
+    low, high = torch.aminmax(tensor)
+    return torch.maximum(-low, high)
 
 
 def resize_image(image: torch.Tensor, d: int) -> torch.Tensor:
@@ -292,13 +299,37 @@ class SplatfactoModel(torch.nn.Module):
         self.strategy = config.density_strategy(self.num_train_data)
         self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene_scale)
         self.step = 0
-        self.info: dict[str, Any] = {}
+        """0-based index of the training step being taken, which every schedule reads (written by :meth:`set_step`
+        alone)"""
         self.register_buffer("background_color", self._fixed_background(), persistent=False)
         self._frequency_loss: FrequencyLoss | None = None
         self._kurtosis_probe: FrequencyLoss | None = None
         self._wavelet_targets: dict[tuple[int, int], Any] = {}
 
+    # ----------------------------------------------------------------------------------------------- the step
+    def set_step(self, step: int) -> None:
+        """Make ``step`` (0-based) the step being taken: the resolution, the SH degree and density control follow
+        it. The pipeline calls it before each training step and when it restores a checkpoint."""
+        self.step = int(step)
+
+    def schedule_state(self) -> dict[str, int]:
+        """What the schedules give at the current step: the SH degree in use and the training downscale factor."""
+        return {"sh_degree": self.sh_degree_to_use(), "train_downscale": self.get_downscale_factor()}
+
     # ----------------------------------------------------------------------------------------------- parameters
+    def parameter_groups(self) -> dict[str, torch.nn.Parameter]:
+        """The Gaussian parameters by group name (nerfstudio's ``get_gaussian_param_groups``): what the optimizers
+        step. Density control replaces a group's tensor, so ask again after it rather than keeping these."""
+        return dict(self.gauss_params.items())
+
+    def gradient_peaks(self) -> tuple[list[str], torch.Tensor]:
+        """(names, [G] max |gradient| of each group that has a gradient; NaN where one is NaN), on the device: read
+        once with the rest of the step's verdict (one host synchronisation)."""
+        names = [name for name, param in self.gauss_params.items() if param.grad is not None]
+        if not names:
+            return [], self.means.new_zeros(1)
+        return names, torch.stack([_max_abs(self.gauss_params[name].grad) for name in names])
+
     @property
     def device(self) -> torch.device:
         return self.gauss_params["means"].device
@@ -374,15 +405,16 @@ class SplatfactoModel(torch.nn.Module):
         return 2 ** max(self.config.num_downscales - self.step // self.schedule.resolution_schedule, 0)
 
     # ----------------------------------------------------------------------------------------------- rendering
-    def get_outputs(self, camera: Cameras) -> dict[str, torch.Tensor | None]:
+    def get_outputs(self, camera: Cameras) -> dict[str, Any]:
         """Render one camera.
 
         Args:
             camera: Cameras of length 1.
         Returns:
             ``rgb`` [H, W, 3] in [0, 1], ``depth`` [H, W, 1] (expected depth; None in training unless
-            ``output_depth_during_training``), ``accumulation`` [H, W, 1], ``background`` [3].
-            In training H, W are the size at the current training resolution.
+            ``output_depth_during_training``), ``accumulation`` [H, W, 1], ``background`` [3], and ``info``: the
+            rasterizer's (``means2d``, ``radii``, ...), what density control reads (:meth:`before_backward`,
+            :meth:`step_post_backward`). In training H, W are the size at the current training resolution.
         """
         if len(camera) != 1:
             raise ValueError(f"get_outputs renders one camera at a time, got {len(camera)}")
@@ -413,11 +445,8 @@ class SplatfactoModel(torch.nn.Module):
             render_mode=render_mode,
             rasterize_mode=self.config.rasterize_mode,
             absgrad=self.strategy.absgrad,
-            backend=self.config.rasterization_backend,
+            rasterizer=self.config.rasterizer,
         )
-        self.info = info
-        if self.training:
-            self.strategy.step_pre_backward(self.gauss_params, {}, self.strategy_state, self.step, info)
         background = self._get_background_color()
         alpha = alpha[0]
         rgb = torch.clamp(render[0, ..., :3] + (1 - alpha) * background, 0.0, 1.0)
@@ -425,7 +454,7 @@ class SplatfactoModel(torch.nn.Module):
         if render_mode == "RGB+ED":
             depth = render[0, ..., 3:4]
             depth = torch.where(alpha > 0, depth, depth.detach().max())
-        return {"rgb": rgb, "depth": depth, "accumulation": alpha, "background": background}
+        return {"rgb": rgb, "depth": depth, "accumulation": alpha, "background": background, "info": info}
 
     def get_gt_img(self, image: torch.Tensor) -> torch.Tensor:
         """[H, W, C] uint8 or float -> float32 in [0, 1] at the current training resolution, on the model's device.
@@ -475,7 +504,7 @@ class SplatfactoModel(torch.nn.Module):
     def frequency_loss(self) -> FrequencyLoss | None:
         """KC-3DGS's wavelet/KC/CBC module, built from the config on first use (None when every weight is zero)."""
         if self._frequency_loss is None:
-            settings = self.config.frequency_loss_config()
+            settings = self.config.frequency
             if not settings.active:
                 return None
             self._frequency_loss = settings.setup()
@@ -578,12 +607,20 @@ class SplatfactoModel(torch.nn.Module):
             if self._kurtosis_probe is None:
                 # the loss itself, or (every weight zero) a module with the same DWT settings: either warns once per
                 # run when the image is too small for the levels
-                self._kurtosis_probe = self.frequency_loss or self.config.frequency_loss_config().setup()
+                self._kurtosis_probe = self.frequency_loss or self.config.frequency.setup()
             with torch.no_grad():
                 image = self._kurtosis_probe.bands(_bchw(image.detach().float()), covariance=False)
         return mean_band_kurtosis(image)
 
     # ----------------------------------------------------------------------------------------------- density control
-    def step_post_backward(self, optimizers: dict[str, torch.optim.Optimizer], step: int) -> dict[str, int]:
-        """Density control after the optimizer step (reads ``info['means2d']``'s gradient from this step's render)."""
-        return self.strategy.step_post_backward(self.gauss_params, optimizers, self.strategy_state, step, self.info)
+    def before_backward(self, outputs: dict[str, Any]) -> None:
+        """Density control's hook between a training render and its backward: keep the gradient of the projected
+        means (``outputs["info"]``, from :meth:`get_outputs`)."""
+        self.strategy.step_pre_backward(self.gauss_params, {}, self.strategy_state, self.step, outputs["info"])
+
+    def step_post_backward(self, optimizers: dict[str, torch.optim.Optimizer], outputs: dict[str, Any]) -> dict[str, int]:
+        """Density control after the optimizer step of the current step: statistics from ``outputs`` (this step's
+        render, after :meth:`before_backward` and the backward), then grow / prune / reset on the schedule. Returns
+        the counts of what it did."""
+        return self.strategy.step_post_backward(self.gauss_params, optimizers, self.strategy_state, self.step,
+                                                outputs["info"])

@@ -23,7 +23,6 @@ from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
-from kc_splatfacto.losses.frequency import FrequencyLossConfig
 from kc_splatfacto.nerfstudio_plugin.model import KCSplatfactoModelConfig
 
 PLAIN_SPLATFACTO = "splatfacto-cpu"
@@ -96,13 +95,14 @@ def splatfacto_trainer(method_name: str, model: KCSplatfactoModelConfig) -> Trai
 
 
 def nerfstudio_model_config(project_model: Any, project_baseline: Any) -> KCSplatfactoModelConfig:
-    """The plugin's model config for one of the project's methods: every frequency-loss setting of
-    ``project_model`` (the project's model config), and each other field in which it differs from the project's
-    ``splatfacto`` (``project_baseline``, whose fields are nerfstudio's defaults). A field nerfstudio's Splatfacto
-    does not have is an error: that method cannot be the same method in nerfstudio."""
-    frequency = {field.name for field in dataclasses.fields(FrequencyLossConfig)}
-    ours, baseline = dataclasses.asdict(project_model), dataclasses.asdict(project_baseline)
-    changes = {name: value for name, value in ours.items() if name in frequency or value != baseline[name]}
+    """The plugin's model config for one of the project's methods: the frequency-loss settings of ``project_model``
+    (the project's model config), and each other field in which it differs from the project's ``splatfacto``
+    (``project_baseline``, whose fields are nerfstudio's defaults). A field nerfstudio's Splatfacto does not have is
+    an error: that method cannot be the same method in nerfstudio."""
+    ours = {field.name: getattr(project_model, field.name) for field in dataclasses.fields(project_model)}
+    baseline = {field.name: getattr(project_baseline, field.name) for field in dataclasses.fields(project_baseline)}
+    changes = {name: value for name, value in ours.items() if name == "frequency" or value != baseline[name]}
+    changes["frequency"] = dataclasses.replace(changes["frequency"])  # the plugin's own copy
     known = {field.name for field in dataclasses.fields(KCSplatfactoModelConfig)}
     foreign = sorted(set(changes) - known)
     if foreign:

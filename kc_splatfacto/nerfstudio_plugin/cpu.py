@@ -57,7 +57,7 @@ def rasterization_gsplat_1_4(**kwargs: Any) -> tuple[Tensor, Tensor, dict]:
     for name in GSPLAT_1_4_IGNORED:
         if kwargs.pop(name, False):
             raise ValueError(f"the CPU rasterizer renders unpacked, dense gradients only: {name}=True is not supported")
-    render, alpha, info = rasterization(**kwargs, backend="cpu")
+    render, alpha, info = rasterization(**kwargs, rasterizer="cpu")
     info["radii"] = info["radii"].amax(dim=-1)
     return render, alpha, info
 

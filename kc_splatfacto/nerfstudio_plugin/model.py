@@ -6,8 +6,9 @@ the rest are nerfstudio's own code with gsplat, so ``ns-train splatfacto`` again
 paper's comparison. Without CUDA (``--machine.device-type cpu``) the model renders through the project's compiled
 rasterizer and evaluates LPIPS offline (:mod:`.cpu`), where nerfstudio's own model cannot start.
 
-The frequency-loss settings are :class:`~kc_splatfacto.losses.frequency.FrequencyLossConfig`'s fields (same names and
-the paper's defaults, inherited: written once), so ``--pipeline.model.kc-weight`` means what it means in ``kc-train``.
+The frequency-loss settings are a :class:`~kc_splatfacto.losses.frequency.FrequencyLossConfig` nested as
+``pipeline.model.frequency`` (the paper's defaults, written once), as in ``kc-train``'s model config, so
+``--pipeline.model.frequency.kc-weight`` means the same in both.
 """
 
 from __future__ import annotations
@@ -33,11 +34,13 @@ LPIPS_METRICS = ("lpips", "cc_lpips")
 
 
 @dataclass
-class KCSplatfactoModelConfig(SplatfactoModelConfig, FrequencyLossConfig):
+class KCSplatfactoModelConfig(SplatfactoModelConfig):
     """nerfstudio's Splatfacto with KC-3DGS's wavelet L1, kurtosis-concentration and cross-band covariance losses
-    (their settings and the paper's defaults: ``FrequencyLossConfig``'s fields; all three weights 0: Splatfacto)."""
+    (``frequency``: their settings, the paper's by default; all three weights 0: Splatfacto)."""
 
     _target: Type = field(default_factory=lambda: KCSplatfactoModel)
+    frequency: FrequencyLossConfig = field(default_factory=FrequencyLossConfig)
+    """KC-3DGS's wavelet-domain losses and their DWT (kc-train's ``pipeline.model.frequency``)"""
 
 
 def on_cuda(device: Any) -> bool:
@@ -65,7 +68,7 @@ class KCSplatfactoModel(SplatfactoModel):
             super().populate_modules()
         else:
             self._populate_modules_for_cpu()
-        settings = FrequencyLossConfig.from_fields(self.config)
+        settings = self.config.frequency
         self.frequency_loss = settings.setup() if settings.active else None
         self.wavelet_targets: Dict[tuple, WaveletBands] = {}
 

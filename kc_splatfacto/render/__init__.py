@@ -1,4 +1,4 @@
-"""Render layer: gsplat-compatible ``rasterization()`` with reference (torch), cpu (compiled) and gsplat backends."""
+"""Render layer: gsplat-compatible ``rasterization()`` with reference (torch), cpu (compiled) and gsplat rasterizers."""
 
 from .errors import NonFiniteInputError
 from .projection import (
@@ -9,14 +9,14 @@ from .projection import (
     quat_to_rotmat,
     world_to_cam,
 )
-from .rasterization import BACKENDS, RENDER_MODES, rasterization, resolve_backend
+from .rasterization import RASTERIZERS, RENDER_MODES, rasterization, resolve_rasterizer
 from .rasterize_torch import rasterize_to_pixels_torch
 from .sh import SplitSH, num_sh_bases, sh_bases, sh_to_rgb, spherical_harmonics
 from .tiles import TileIntersections, isect_offset_encode, isect_tiles, tile_grid
 
 __all__ = [
-    "BACKENDS",
     "NonFiniteInputError",
+    "RASTERIZERS",
     "RENDER_MODES",
     "Projection",
     "SplitSH",
@@ -30,7 +30,7 @@ __all__ = [
     "quat_to_rotmat",
     "rasterization",
     "rasterize_to_pixels_torch",
-    "resolve_backend",
+    "resolve_rasterizer",
     "sh_bases",
     "sh_to_rgb",
     "spherical_harmonics",

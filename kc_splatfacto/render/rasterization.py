@@ -1,6 +1,7 @@
-"""``rasterization()``: gsplat 1.5.3's call and return contract (unpacked, pinhole), with three backends.
+"""``rasterization()``: gsplat 1.5.3's call and return contract (unpacked, pinhole), with three rasterizers.
 
-:func:`rasterization` checks the request (:func:`resolve_backend`) and hands it to one function per backend:
+:func:`rasterization` checks the request (:func:`resolve_rasterizer`) and hands it to one function per rasterizer
+(its ``rasterizer`` argument; the model config's field of the same name):
 
 - ``"torch"`` (:func:`_rasterization_torch`): the reference, every stage in torch ops (projection, SH, tile binning,
   :func:`rasterize_to_pixels_torch`), differentiable by autograd; slow; the tests' oracle.
@@ -9,9 +10,11 @@
   (``tiles.bin_tiles_cpu``), compositing (``rasterize_cpu.rasterize_to_pixels_cpu``).
 - ``"gsplat"`` (:func:`_rasterization_gsplat`): ``gsplat.rasterization`` itself; needs gsplat and CUDA tensors.
 - ``"auto"``: gsplat for CUDA tensors (an error when gsplat is missing), cpu for CPU tensors, or torch when the
-  reference is forced (``kc_splatfacto.backend``: ``KC_SPLATFACTO_BACKEND=torch`` or ``backend.torch_reference()``).
+  reference is forced (:mod:`kc_splatfacto.backend`, the one switch between every compiled kernel and its torch
+  reference: ``KC_SPLATFACTO_BACKEND=torch`` or ``backend.torch_reference()``; a debugging switch, not a choice of
+  rasterizer).
 
-The cpu and torch backends share the tail (:func:`_composite`: render-mode channels, binning, compositing, meta).
+The cpu and torch rasterizers share the tail (:func:`_composite`: render-mode channels, binning, compositing, meta).
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ from typing import Callable, Literal, Optional
 import torch
 from torch import Tensor
 
-from kc_splatfacto import backend as backend_switch
+from kc_splatfacto import backend
 
 from .constants import EPS2D, EXPECTED_DEPTH_ALPHA_MIN, FAR_PLANE, NEAR_PLANE, TILE_SIZE
 from .errors import NonFiniteInputError, non_finite_message
@@ -33,10 +36,10 @@ from .tiles import bin_tiles_cpu, isect_offset_encode, isect_tiles, tile_grid
 
 RenderMode = Literal["RGB", "D", "ED", "RGB+D", "RGB+ED"]
 RasterizeMode = Literal["classic", "antialiased"]
-Backend = Literal["auto", "cpu", "torch", "gsplat"]
+Rasterizer = Literal["auto", "cpu", "torch", "gsplat"]
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 RASTERIZE_MODES = ("classic", "antialiased")
-BACKENDS = ("auto", "cpu", "torch", "gsplat")
+RASTERIZERS = ("auto", "cpu", "torch", "gsplat")
 
 
 def _gsplat_available() -> bool:
@@ -55,58 +58,59 @@ def _cpu_rasterizer() -> Optional[Callable]:
     return rasterize_to_pixels_cpu
 
 
-def resolve_backend(backend: str, device: torch.device) -> str:
-    """The concrete backend for ``backend`` and tensors on ``device``; raises on impossible requests. "auto" gives
-    "torch" while the reference is forced (:mod:`kc_splatfacto.backend`); an explicit backend is always honoured.
+def resolve_rasterizer(rasterizer: str, device: torch.device) -> str:
+    """The concrete rasterizer for ``rasterizer`` and tensors on ``device``; raises on impossible requests. "auto"
+    gives "torch" while the reference is forced (:mod:`kc_splatfacto.rasterizer`); an explicit choice is always
+    honoured.
 
     Raises:
-        ValueError: unknown backend, or "cpu" asked with non-CPU tensors.
+        ValueError: unknown rasterizer, or "cpu" asked with non-CPU tensors.
         RuntimeError: "gsplat" asked without gsplat or without CUDA tensors, or "auto" with CUDA tensors and no
             gsplat (never a silent fallback).
         ImportError: "cpu" asked while the compiled module cannot be imported.
     """
-    if backend not in BACKENDS:
-        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-    if backend == "auto":
-        if backend_switch.reference_forced():
+    if rasterizer not in RASTERIZERS:
+        raise ValueError(f"rasterizer must be one of {RASTERIZERS}, got {rasterizer!r}")
+    if rasterizer == "auto":
+        if backend.reference_forced():
             return "torch"
         if device.type == "cuda":
             if _gsplat_available():
                 return "gsplat"
             raise RuntimeError(
-                "rasterization(backend='auto') got CUDA tensors but gsplat is not installed: install gsplat==1.5.3, "
-                "move the tensors to the CPU (compiled cpu backend), or pass backend='torch' (slow reference)"
+                "rasterization(rasterizer='auto') got CUDA tensors but gsplat is not installed: install gsplat==1.5.3, "
+                "move the tensors to the CPU (compiled cpu rasterizer), or pass rasterizer='torch' (slow reference)"
             )
         if _cpu_rasterizer() is not None:
             return "cpu"
         warnings.warn(
-            "rasterization(backend='auto'): the compiled cpu rasterizer (kc_splatfacto.render.rasterize_cpu) is not "
+            "rasterization(rasterizer='auto'): the compiled cpu rasterizer (kc_splatfacto.render.rasterize_cpu) is not "
             "available; using the slow torch reference",
             RuntimeWarning,
             stacklevel=3,
         )
         return "torch"
-    if backend == "gsplat":
+    if rasterizer == "gsplat":
         if not _gsplat_available():
             raise RuntimeError(
-                "rasterization(backend='gsplat') needs the gsplat package (pip install gsplat==1.5.3, with CUDA); "
-                "use backend='cpu' or 'auto' on machines without it"
+                "rasterization(rasterizer='gsplat') needs the gsplat package (pip install gsplat==1.5.3, with CUDA); "
+                "use rasterizer='cpu' or 'auto' on machines without it"
             )
         if device.type != "cuda":
             raise RuntimeError(
-                f"rasterization(backend='gsplat') needs CUDA tensors, got tensors on {device}; "
-                "move them with .cuda() or use backend='cpu'"
+                f"rasterization(rasterizer='gsplat') needs CUDA tensors, got tensors on {device}; "
+                "move them with .cuda() or use rasterizer='cpu'"
             )
         return "gsplat"
-    if backend == "cpu":
+    if rasterizer == "cpu":
         if device.type != "cpu":
-            raise ValueError(f"rasterization(backend='cpu') needs CPU tensors, got {device}; use backend='gsplat'")
+            raise ValueError(f"rasterization(rasterizer='cpu') needs CPU tensors, got {device}; use rasterizer='gsplat'")
         if _cpu_rasterizer() is None:
             raise ImportError(
-                "rasterization(backend='cpu'): kc_splatfacto.render.rasterize_cpu (numba kernels) is not available; "
-                "install numba or use backend='torch'"
+                "rasterization(rasterizer='cpu'): kc_splatfacto.render.rasterize_cpu (numba kernels) is not available; "
+                "install numba or use rasterizer='torch'"
             )
-    return backend
+    return rasterizer
 
 
 def _match_numba_threads() -> None:
@@ -207,7 +211,7 @@ def rasterization(
     rasterize_mode: RasterizeMode = "classic",
     absgrad: bool = False,
     tile_size: int = TILE_SIZE,
-    backend: Backend = "auto",
+    rasterizer: Rasterizer = "auto",
 ) -> tuple[Tensor, Tensor, dict]:
     """Render N Gaussians into C pinhole cameras (gsplat 1.5.3 ``rasterization``, packed=False).
 
@@ -215,23 +219,23 @@ def rasterization(
         means: [N, 3]; quats: [N, 4] wxyz, any norm; scales: [N, 3] linear; opacities: [N] in [0, 1].
         colors: [N, D] or [C, N, D] post-activation, or SH coefficients [N, K, 3] / [C, N, K, 3] with ``sh_degree``
             (colour = max(SH(means - camera centre) + 0.5, 0)), or those coefficients as a :class:`sh.SplitSH`
-            (degree 0 and the rest in two tensors, as Splatfacto holds them: the cpu backend reads them in place;
+            (degree 0 and the rest in two tensors, as Splatfacto holds them: the cpu rasterizer reads them in place;
             the others concatenate them).
         viewmats: [C, 4, 4] world-to-camera (OpenCV); Ks: [C, 3, 3]; width, height: pixels.
         render_mode: "RGB"; "D" accumulated depth; "ED" expected depth (accumulated depth / max(alpha, 1e-10));
             "RGB+D", "RGB+ED": depth as an extra last channel (background 0 for it).
         rasterize_mode: "antialiased" multiplies opacities by the eps2d compensation.
         absgrad: fill ``meta["means2d"].absgrad`` in backward.
-        backend: "auto" | "cpu" | "torch" | "gsplat" (see the module docstring).
+        rasterizer: "auto" | "cpu" | "torch" | "gsplat" (see the module docstring).
 
     Returns:
         render_colors [C, H, W, ch], render_alphas [C, H, W, 1], meta (``means2d`` [C, N, 2] whose ``.grad`` backward
         fills, ``radii`` [C, N, 2] int32, ``depths`` [C, N], ``conics``, ``opacities`` [C, N], tile data, ``width``,
-        ``height``, ``tile_size``, ``n_cameras``, ``backend``).
+        ``height``, ``tile_size``, ``n_cameras``, ``rasterizer``).
     """
-    resolved = resolve_backend(backend, means.device)
+    resolved = resolve_rasterizer(rasterizer, means.device)
     if isinstance(colors, SplitSH):
-        # checked once here; only the cpu backend's compiled projection reads the two tensors in place
+        # checked once here; only the cpu rasterizer's compiled projection reads the two tensors in place
         if sh_degree is None:
             raise ValueError("colors=SplitSH(...) holds SH coefficients: pass sh_degree")
         colors.check()
@@ -250,7 +254,7 @@ def rasterization(
 
 
 def _compiled_projection(means: Tensor) -> bool:
-    """The cpu backend projects with its compiled kernel for float32/float64 (other dtypes: the torch projection)."""
+    """The cpu rasterizer projects with its compiled kernel for float32/float64 (other dtypes: the torch projection)."""
     return means.dtype in (torch.float32, torch.float64)
 
 
@@ -258,7 +262,7 @@ def _rasterization_gsplat(means, quats, scales, opacities, colors, viewmats, Ks,
                           near_plane, far_plane, eps2d, radius_clip, backgrounds, render_mode, rasterize_mode,
                           absgrad, tile_size) -> tuple[Tensor, Tensor, dict]:
     """``gsplat.rasterization`` itself (CUDA tensors), with ``meta["means2d"]`` keeping its gradient."""
-    import gsplat  # optional: resolve_backend checked that it imports
+    import gsplat  # optional: resolve_rasterizer checked that it imports
 
     render_colors, render_alphas, meta = gsplat.rasterization(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height,
@@ -268,7 +272,7 @@ def _rasterization_gsplat(means, quats, scales, opacities, colors, viewmats, Ks,
     )
     if meta["means2d"].requires_grad:
         meta["means2d"].retain_grad()
-    meta["backend"] = "gsplat"
+    meta["rasterizer"] = "gsplat"
     return render_colors, render_alphas, meta
 
 
@@ -378,9 +382,9 @@ def _composite(
     tile_size: int,
     bin_tiles: Callable,
     rasterize: Callable,
-    backend: str,
+    rasterizer: str,
 ) -> tuple[Tensor, Tensor, dict]:
-    """Shared tail of the cpu and torch backends: depth channels of the render mode, tile binning (``bin_tiles``),
+    """Shared tail of the cpu and torch rasterizers: depth channels of the render mode, tile binning (``bin_tiles``),
     compositing (``rasterize``, a ``rasterize_to_pixels`` implementation), expected depth, and gsplat's meta."""
     radii, means2d, depths, conics, opacities_c, colors_c = splats
     assert colors_c is not None  # both projections fill the per-pair colours
@@ -431,6 +435,6 @@ def _composite(
         "tile_size": tile_size,
         "n_batches": 1,
         "n_cameras": n_cameras,
-        "backend": backend,
+        "rasterizer": rasterizer,
     }
     return render_colors, render_alphas, meta

@@ -61,7 +61,7 @@ def _check_inputs(means2d, conics, colors, opacities, image_width, image_height,
     for name, t in (("means2d", means2d), ("conics", conics), ("colors", colors), ("opacities", opacities)):
         if t.device.type != "cpu":
             raise ValueError(f"rasterize_to_pixels_cpu needs CPU tensors, {name} is on {t.device}; "
-                             "use backend='gsplat' for CUDA tensors")
+                             "use rasterizer='gsplat' for CUDA tensors")
 
 
 def _constants() -> tuple[np.float32, np.float32, np.float32, np.float32]:

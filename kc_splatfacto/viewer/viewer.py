@@ -300,7 +300,7 @@ class Viewer(RecordSink):
             self._update_stats(step, trainer.model.num_points, trainer.config.max_num_iterations, now)
         if self.paused:  # held here, between two steps; renders go on, outside the training budget
             pause_start, render_s = time.perf_counter(), self.render_s
-            while self.paused and not trainer._stop_requested:
+            while self.paused and not trainer.stop_requested:
                 self.render_pending()
                 time.sleep(0.05)
             self._t0 += time.perf_counter() - pause_start

@@ -33,7 +33,7 @@ def run(*args: str) -> subprocess.CompletedProcess:
     (("kc-train", "kc-splatfacto", "--max-num-iteration", "5"),
      "unrecognized option --max-num-iteration; did you mean --max-num-iterations?"),
     (("kc-train", "kc-splatfacto", "--kc-weigth", "1"),
-     "unrecognized option --kc-weigth; did you mean --pipeline.model.kc-weight?"),
+     "unrecognized option --kc-weigth; did you mean --pipeline.model.frequency.kc-weight?"),
     (("kc-train", "kc-splatfacto", "--data", "demo", "colmp"), "unrecognized option colmp; did you mean colmap?"),
     (("kc-train", "kc-splatfacto", "--data", "demo", "colmap", "--downscale-factr", "2"),
      "unrecognized option --downscale-factr; did you mean --downscale-factor?"),

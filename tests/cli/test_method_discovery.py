@@ -33,18 +33,20 @@ def run_help(extra_path: Path | None = None, env_extra: dict | None = None) -> s
 def test_builtin_methods_are_registered_with_the_papers_weights():
     methods = discover_methods()
     assert set(BUILT_IN) <= set(methods)
-    kc = methods["kc-splatfacto"].config.pipeline.model
+    kc = methods["kc-splatfacto"].config.pipeline.model.frequency
     assert (kc.wavelet_weight, kc.kc_weight, kc.cbc_weight, kc.wave, kc.wavelet_levels) == (1e-3, 1e-5, 1e-2, "db3", 3)
     assert kc.kc_supervised and kc.cbc_supervised and kc.wavelet_weighting == "paper"
     base = methods["splatfacto"].config.pipeline.model
-    assert (base.wavelet_weight, base.kc_weight, base.cbc_weight, base.ssim_lambda) == (0.0, 0.0, 0.0, 0.2)
-    assert methods["kc-splatfacto-fine"].config.pipeline.model.wavelet_weighting == "fine"
+    assert (base.frequency.wavelet_weight, base.frequency.kc_weight, base.frequency.cbc_weight,
+            base.ssim_lambda) == (0.0, 0.0, 0.0, 0.2)
+    assert methods["kc-splatfacto-fine"].config.pipeline.model.frequency.wavelet_weighting == "fine"
     assert methods["kc-ablation-l1-wavelet"].config.pipeline.model.ssim_lambda == 0.0
-    assert methods["kc-ablation-unscaled-wavelet"].config.pipeline.model.wavelet_weighting == "uniform"
-    assert methods["kc-ablation-scaled-cbc"].config.pipeline.model.cbc_correlation
+    assert methods["kc-ablation-unscaled-wavelet"].config.pipeline.model.frequency.wavelet_weighting == "uniform"
+    assert methods["kc-ablation-scaled-cbc"].config.pipeline.model.frequency.cbc_correlation
     # the tuned method is the paper's settings with one change: the CBC on correlations
     corr = methods["kc-splatfacto-corr"].config.pipeline.model
-    assert corr == dataclasses.replace(kc, cbc_correlation=True)
+    kc_model = methods["kc-splatfacto"].config.pipeline.model
+    assert corr == dataclasses.replace(kc_model, frequency=dataclasses.replace(kc, cbc_correlation=True))
     for name in BUILT_IN:
         assert methods[name].config.method_name == name
 
@@ -82,16 +84,16 @@ def test_environment_variable_adds_a_method(tmp_path):
 
 def test_dotted_overrides_reach_the_config():
     config = parse_config([
-        "kc-splatfacto", "--data", "demo", "--max-num-iterations", "300", "--pipeline.model.kc-weight", "1e-3",
-        "--pipeline.model.wavelet-weighting", "fine",
+        "kc-splatfacto", "--data", "demo", "--max-num-iterations", "300", "--pipeline.model.frequency.kc-weight", "1e-3",
+        "--pipeline.model.frequency.wavelet-weighting", "fine",
         "--eval-at-steps", "0", "10", "100", "--machine.seed", "3", "--optimizers.means.optimizer.lr", "2e-4",
         "auto", "--downscale-factor", "4",
     ])
     assert config.method_name == "kc-splatfacto"
     assert config.max_num_iterations == 300
-    assert config.pipeline.model.kc_weight == 1e-3
-    assert config.pipeline.model.cbc_weight == 1e-2  # untouched defaults stay the method's
-    assert config.pipeline.model.wavelet_weighting == "fine"
+    assert config.pipeline.model.frequency.kc_weight == 1e-3
+    assert config.pipeline.model.frequency.cbc_weight == 1e-2  # untouched defaults stay the method's
+    assert config.pipeline.model.frequency.wavelet_weighting == "fine"
     assert config.pipeline.datamanager.dataparser.downscale_factor == 4
     assert config.eval_at_steps == (0, 10, 100)
     assert config.machine.seed == 3 and config.optimizers.means.optimizer.lr == 2e-4
@@ -105,11 +107,11 @@ def test_dataparser_is_a_subcommand_with_its_own_options(castle_p30):
     from kc_splatfacto.data.colmap import ColmapDataParserConfig
     from kc_splatfacto.data.spars3r import Spars3rDataParserConfig
 
-    config = parse_config(["kc-splatfacto", "--data", str(castle_p30), "--pipeline.model.kc-weight", "1e-4",
+    config = parse_config(["kc-splatfacto", "--data", str(castle_p30), "--pipeline.model.frequency.kc-weight", "1e-4",
                            "colmap", "--downscale-factor", "4", "--eval-mode", "all"])
     parser = config.pipeline.datamanager.dataparser
     assert type(parser) is ColmapDataParserConfig and parser.downscale_factor == 4 and parser.eval_mode == "all"
-    assert config.pipeline.model.kc_weight == 1e-4
+    assert config.pipeline.model.frequency.kc_weight == 1e-4
     config.resolve_aliases()
     resolved = config.pipeline.datamanager.resolve_dataparser()
     assert resolved.data == castle_p30 and resolved.eval_mode == "all"
@@ -183,10 +185,10 @@ def test_kc_bench_set_goes_through_kc_trains_parser():
     common = dict(method="kc-splatfacto", data=Path("demo"), seed=1, max_steps=10, eval_steps=(1, 10),
                   runs_dir=Path("runs"), experiment="e", downscale_factor=2, steps_scale=0.1, device="cpu")
     config = build_run_config(spec, **common, overrides=[
-        "pipeline.model.num_downscales=0", "pipeline.model.wavelet_weighting=fine", "eval_at_steps=0 5"])
-    assert config.pipeline.model.num_downscales == 0 and config.pipeline.model.wavelet_weighting == "fine"
+        "pipeline.model.num_downscales=0", "pipeline.model.frequency.wavelet_weighting=fine", "eval_at_steps=0 5"])
+    assert config.pipeline.model.num_downscales == 0 and config.pipeline.model.frequency.wavelet_weighting == "fine"
     assert config.eval_at_steps == (0, 5) and config.pipeline.datamanager.dataparser.downscale_factor == 2
-    assert spec.pipeline.model.wavelet_weighting == "paper"  # the registered config is untouched
-    for bad in ("pipeline.model.wavelet_weighting=coarse", "pipeline.model.no_such_field=1", "missing-equals"):
+    assert spec.pipeline.model.frequency.wavelet_weighting == "paper"  # the registered config is untouched
+    for bad in ("pipeline.model.frequency.wavelet_weighting=coarse", "pipeline.model.no_such_field=1", "missing-equals"):
         with pytest.raises(ValueError, match="--set"):
             build_run_config(spec, **common, overrides=[bad])

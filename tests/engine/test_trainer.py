@@ -10,6 +10,7 @@ import torch
 from kc_splatfacto.engine.checkpoints import list_checkpoints
 from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.trainer import Trainer, TrainingDivergedError
+from kc_splatfacto.losses.frequency import FrequencyLossConfig
 from kc_splatfacto.model.strategy import NoGaussiansLeftError
 from tests.training_utils import tiny_demo_config
 
@@ -234,8 +235,8 @@ def test_non_finite_parameters_that_render_finitely_are_removed_by_the_periodic_
 
 def test_papers_failing_weights_train_without_nan(tmp_path):
     # supplementary table: KC 1e-3, CBC 1.0 and wavelet 1.0 degrade the metrics but must stay finite
-    config = tiny_demo_config("kc-splatfacto", tmp_path, iterations=60, kc_weight=1e-3, cbc_weight=1.0,
-                              wavelet_weight=1.0)
+    config = tiny_demo_config("kc-splatfacto", tmp_path, iterations=60,
+                              frequency=FrequencyLossConfig(kc_weight=1e-3, cbc_weight=1.0, wavelet_weight=1.0))
     trainer = Trainer(config)
     trainer.train()
     records = read_metrics(trainer.run_dir / "metrics.jsonl")
@@ -259,13 +260,13 @@ def test_steps_scale_compresses_every_schedule(tmp_path):
     assert (strategy.refine_start_iter, strategy.refine_every, strategy.reset_every) == (50, 10, 300)
     assert (strategy.refine_stop_iter, strategy.refine_scale2d_stop_iter) == (1500, 400)
     assert strategy.pause_refine_after_reset == 12 + 10
-    model.step = 99
+    model.set_step(99)
     assert model.sh_degree_to_use() == 0 and model.get_downscale_factor() == 4
-    model.step = 100
+    model.set_step(100)
     assert model.sh_degree_to_use() == 1
-    model.step = 300
+    model.set_step(300)
     assert model.get_downscale_factor() == 2
-    model.step = 5000
+    model.set_step(5000)
     assert model.sh_degree_to_use() == 3 and model.get_downscale_factor() == 1
 
 
@@ -305,7 +306,8 @@ def test_schedules_do_not_depend_on_max_num_iterations(tmp_path, steps_scale):
                   "pause_refine_after_reset"):
         assert getattr(short.strategy, field) == getattr(long.strategy, field), field
     for step in range(0, 800, 7):
-        short.step = long.step = step
+        short.set_step(step)
+        long.set_step(step)
         assert short.sh_degree_to_use() == long.sh_degree_to_use()
         assert short.get_downscale_factor() == long.get_downscale_factor()
 

@@ -1,14 +1,17 @@
-"""engine/validation.py (issue 26): every rule of the table refuses a value outside its range with the dotted name,
-the value and the range, and accepts every registered method's defaults; types are checked against annotations."""
+"""engine/validation.py and the ranges declared beside the fields (kc_splatfacto/settings.py): every declared rule
+refuses a value outside its range with the dotted name, the value and the range, every numeric field of a run's config
+declares one, every registered method's defaults are valid, and types are checked against annotations."""
 
 import copy
+import dataclasses
 import math
 
 import pytest
 
 from kc_splatfacto.data.colmap import ColmapDataParserConfig
-from kc_splatfacto.engine.validation import RULES, ConfigValueError, _resolve, validate_config
+from kc_splatfacto.engine.validation import ConfigValueError, validate_config
 from kc_splatfacto.registry import discover_methods
+from kc_splatfacto.settings import declared_rules
 from tests.training_utils import tiny_demo_config
 
 
@@ -37,19 +40,29 @@ def bad_values(allowed: str):
     return values
 
 
-def config_with(dotted):
-    """The tiny demo config, or with a COLMAP dataparser for the fields the demo's has not."""
-    config = tiny_demo_config("kc-splatfacto", "/tmp/unused")
-    if not _resolve(config, dotted):
-        config.pipeline.datamanager.dataparser = ColmapDataParserConfig()
+def demo_config():
+    return tiny_demo_config("kc-splatfacto", "/tmp/unused")
+
+
+def colmap_config():
+    config = demo_config()
+    config.pipeline.datamanager.dataparser = ColmapDataParserConfig()
     return config
 
 
+CONFIGS = (demo_config, colmap_config)
+"""a run's config with each kind of dataparser field (the demo's sizes, COLMAP's split settings)"""
+
+
 def rule_cases():
-    for dotted, (_, allowed) in RULES:
-        for name, _ in _resolve(config_with(dotted), dotted):
-            for value in bad_values(allowed):
-                yield pytest.param(name, value, id=f"{name}={value!r}")
+    seen = set()
+    for make in CONFIGS:
+        for name, rule in declared_rules(make()):
+            if name in seen:
+                continue
+            seen.add(name)
+            for value in bad_values(rule.allowed):
+                yield pytest.param(make, name, value, id=f"{name}={value!r}")
 
 
 def set_field(config, dotted, value):
@@ -60,13 +73,31 @@ def set_field(config, dotted, value):
     setattr(holder, last, value)
 
 
-def test_the_table_covers_every_dataparser_rule():
-    assert all(_resolve(config_with(dotted), dotted) for dotted, _ in RULES)
+def numeric_fields(config, prefix=""):
+    """Dotted names of every int or float field of the config tree (bools are not numbers here)."""
+    for field in dataclasses.fields(config):
+        value = getattr(config, field.name)
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            yield from numeric_fields(value, f"{prefix}{field.name}.")
+        elif isinstance(value, (int, float)) and not isinstance(value, bool):
+            yield f"{prefix}{field.name}"
 
 
-@pytest.mark.parametrize("dotted, value", list(rule_cases()))
-def test_each_rule_refuses_values_outside_its_range_naming_field_and_value(dotted, value):
-    config = config_with(dotted)
+@pytest.mark.parametrize("make", CONFIGS)
+def test_every_numeric_field_declares_its_range(make):
+    config = make()
+    declared = {name for name, _ in declared_rules(config)}
+    assert set(numeric_fields(config)) <= declared
+
+
+def test_each_field_rule_is_declared_once_beside_its_field():
+    names = [name for name, _ in declared_rules(demo_config())]
+    assert len(names) == len(set(names)) and "pipeline.model.frequency.kc_weight" in names
+
+
+@pytest.mark.parametrize("make, dotted, value", list(rule_cases()))
+def test_each_rule_refuses_values_outside_its_range_naming_field_and_value(make, dotted, value):
+    config = make()
     set_field(config, dotted, value)
     with pytest.raises(ConfigValueError) as info:
         validate_config(config)
@@ -81,10 +112,11 @@ def test_every_registered_method_default_is_valid(method):
 
 def test_frequency_loss_needs_a_wavelet_level():
     config = tiny_demo_config("splatfacto", "/tmp/unused")
-    config.pipeline.model.wavelet_levels = 0
+    config.pipeline.model.frequency.wavelet_levels = 0
     validate_config(config)  # no frequency loss: no level needed
-    config.pipeline.model.kc_weight = 1e-5
-    with pytest.raises(ConfigValueError, match="pipeline.model.wavelet_levels = 0 with a non-zero frequency loss"):
+    config.pipeline.model.frequency.kc_weight = 1e-5
+    with pytest.raises(ConfigValueError, match=r"pipeline.model.frequency.wavelet_levels = 0 is not allowed: "
+                                               r"--pipeline.model.frequency.wavelet-levels must be an integer >= 1 while"):
         validate_config(config)
 
 

@@ -216,7 +216,7 @@ def test_each_argument_takes_one_type(heavy_tailed_pair):
     ],
 )
 def test_frequency_loss_returns_only_active_terms(weights, keys):
-    loss = FrequencyLoss(*weights)
+    loss = FrequencyLoss(**dict(zip(("wavelet_weight", "kc_weight", "cbc_weight"), weights)))
     assert loss.active == bool(keys)
     out = loss(torch.rand(1, 3, 64, 64), loss.prepare_target(torch.rand(1, 3, 64, 64)))
     assert set(out) == keys
@@ -230,7 +230,7 @@ def test_bad_weight_is_refused(bad):
 
 def test_frequency_loss_unsupervised_and_correlation_options(heavy_tailed_pair):
     pred, gt = (torch.tensor(a) for a in heavy_tailed_pair)
-    loss = FrequencyLoss(0.0, 1.0, 1.0, kc_supervised=False, cbc_supervised=False, cbc_correlation=True)
+    loss = FrequencyLoss(wavelet_weight=0.0, kc_weight=1.0, cbc_weight=1.0, kc_supervised=False, cbc_supervised=False, cbc_correlation=True)
     out = loss(pred, loss.prepare_target(gt))
     torch.testing.assert_close(out["kc_loss"], kc_loss(bands(pred), kc_supervised=False))
     torch.testing.assert_close(out["cbc_loss"], cbc_loss(bands(pred, cbc_correlation=True), cbc_supervised=False))
@@ -239,14 +239,14 @@ def test_frequency_loss_unsupervised_and_correlation_options(heavy_tailed_pair):
 def test_frequency_loss_weighting_option(heavy_tailed_pair):
     pred, gt = (torch.tensor(a) for a in heavy_tailed_pair)
     for weighting in ("paper", "fine", "uniform"):
-        loss = FrequencyLoss(1.0, 0.0, 0.0, wavelet_weighting=weighting)
+        loss = FrequencyLoss(wavelet_weight=1.0, kc_weight=0.0, cbc_weight=0.0, wavelet_weighting=weighting)
         out = loss(pred, loss.prepare_target(gt))
         torch.testing.assert_close(out["wavelet_loss"], wavelet_l1(bands(pred), target(gt), wavelet_weighting=weighting))
 
 
 def test_float64_cached_target_serves_a_float32_prediction(heavy_tailed_pair):
     pred, gt = (torch.tensor(a) for a in heavy_tailed_pair)
-    loss = FrequencyLoss(1.0, 1.0, 1.0)
+    loss = FrequencyLoss(wavelet_weight=1.0, kc_weight=1.0, cbc_weight=1.0)
     mixed = loss(pred.float(), loss.prepare_target(gt))  # target cached in float64
     same = loss(pred.float(), loss.prepare_target(gt.float()))
     for key, value in mixed.items():
@@ -322,7 +322,7 @@ def test_gradcheck_float64(term):
         "kc": lambda p: kc_loss(bands(p, **options), target(gt, **options)),
         "kc_unsupervised": lambda p: kc_loss(bands(p, **options), kc_supervised=False),
         "cbc": lambda p: cbc_loss(bands(p, **options), target(gt, **options)) * 1e4,
-        "module": lambda p: torch.stack(list(FrequencyLoss(1.0, 1.0, 1e4, **options)(p, target(gt, **options)).values())),
+        "module": lambda p: torch.stack(list(FrequencyLoss(wavelet_weight=1.0, kc_weight=1.0, cbc_weight=1e4, **options)(p, target(gt, **options)).values())),
     }
     # fast mode: the Jacobian against finite differences along random directions (full mode is ~10x slower)
     assert torch.autograd.gradcheck(functions[term], (pred,), eps=1e-6, atol=1e-6, rtol=1e-5, fast_mode=True)

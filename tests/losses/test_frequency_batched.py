@@ -4,8 +4,6 @@ term, the mean of the values ``kc-train``'s model gives each image alone, and th
 
 from __future__ import annotations
 
-import dataclasses
-
 import pytest
 import torch
 
@@ -30,7 +28,7 @@ def test_a_batch_gives_the_mean_of_the_models_per_image_values_and_gradients(siz
     assert set(terms) == set(TERMS)
     batch_grad = torch.autograd.grad(sum(terms.values()), colors)[0]
 
-    model = SplatfactoModelConfig(num_downscales=0, **dataclasses.asdict(FrequencyLossConfig())).setup().train()
+    model = SplatfactoModelConfig(num_downscales=0, frequency=FrequencyLossConfig()).setup().train()
     per_image, per_image_grads = [], []
     for b in range(batch):
         pred = colors[b].detach().clone().requires_grad_()

@@ -24,7 +24,7 @@ ALL_TERMS = {"wavelet_loss", "kc_loss", "cbc_loss"}
 def all_terms(pred, gt, **options):
     """Every term with unit weights (plus the unsupervised and correlation variants), and pred's gradient."""
     pred = pred.detach().clone().requires_grad_(True)
-    loss = FrequencyLoss(1.0, 1.0, 1.0, **options)
+    loss = FrequencyLoss(wavelet_weight=1.0, kc_weight=1.0, cbc_weight=1.0, **options)
     terms = dict(loss(pred, loss.prepare_target(gt)))
     terms["kc_unsupervised"] = kc_loss(wavelet_bands(pred), kc_supervised=False)
     terms["cbc_unsupervised"] = cbc_loss(wavelet_bands(pred), cbc_supervised=False)
@@ -61,7 +61,7 @@ def test_pred_equal_gt_gives_exactly_zero_and_finite_gradients(photo, mode):
     for key in ALL_TERMS:
         assert float(terms[key]) == 0.0, key
     assert_finite(terms, grad)
-    cached = FrequencyLoss(1.0, 1.0, 1.0, wavelet_mode=mode)
+    cached = FrequencyLoss(wavelet_weight=1.0, kc_weight=1.0, cbc_weight=1.0, wavelet_mode=mode)
     assert all(float(v) == 0.0 for v in cached(photo, cached.prepare_target(photo)).values())
 
 
@@ -163,7 +163,7 @@ def test_non_finite_gt_raises_naming_gt(bad):
 def test_half_precision_inputs(photo, half):
     pred = blur(photo.double(), 1.0).to(half).requires_grad_(True)
     gt = photo.to(half)
-    loss = FrequencyLoss(1.0, 1.0, 1.0)
+    loss = FrequencyLoss(wavelet_weight=1.0, kc_weight=1.0, cbc_weight=1.0)
     terms = loss(pred, loss.prepare_target(gt))
     sum(terms.values()).backward()
     assert pred.grad.dtype == half and bool(torch.isfinite(pred.grad).all())

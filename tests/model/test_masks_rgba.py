@@ -102,11 +102,12 @@ def test_rgba_scene_ignores_the_colour_under_transparent_pixels(tmp_path, backgr
 def test_a_render_equal_to_the_rgba_ground_truth_has_zero_loss_under_any_background(background):
     """The GT is composited over outputs["background"]: whatever the background, the render that shows the object
     over it is a perfect match (before, RGBA was composited over black at load: only a black background matched)."""
+    from kc_splatfacto.losses.frequency import FrequencyLossConfig
     from kc_splatfacto.model.splatfacto import SplatfactoModelConfig
 
     torch.manual_seed(0)
     config = SplatfactoModelConfig(background_color=background, num_downscales=0, num_random=10, random_init=True,
-                                   wavelet_weight=1e-3, kc_weight=1e-5, cbc_weight=1e-2)
+                                   frequency=FrequencyLossConfig())
     model = config.setup().train()
     rgba = torch.rand(40, 48, 4)
     rgba[..., 3] = (rgba[..., 3] > 0.5).float() * torch.rand(40, 48)  # transparent, opaque and partial pixels

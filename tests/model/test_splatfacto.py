@@ -8,6 +8,7 @@ import torch
 
 from kc_splatfacto.data import ImageDataset
 from kc_splatfacto.data.demo import DemoDataParserConfig
+from kc_splatfacto.losses.frequency import FrequencyLossConfig
 from kc_splatfacto.model.splatfacto import EVAL_BACKGROUND, SplatfactoModelConfig
 
 
@@ -52,7 +53,7 @@ def test_outputs_contract(demo_train):
 @pytest.mark.parametrize("weights", list(itertools.product([0.0, 1e-3], [0.0, 1e-5], [0.0, 1e-2])))
 def test_loss_terms_present_only_when_weighted(demo_train, weights):
     wavelet, kc, cbc = weights
-    model, dataset = make_model(demo_train, wavelet_weight=wavelet, kc_weight=kc, cbc_weight=cbc)
+    model, dataset = make_model(demo_train, frequency=FrequencyLossConfig(wavelet_weight=wavelet, kc_weight=kc, cbc_weight=cbc))
     model.train()
     out = model.get_outputs(dataset.cameras[0])
     losses = model.get_loss_dict(out, {"image": dataset.image_uint8(0), "image_idx": 0})
@@ -65,7 +66,7 @@ def test_loss_terms_present_only_when_weighted(demo_train, weights):
 def test_scale_regularization_only_when_enabled(demo_train):
     model, dataset = make_model(demo_train, use_scale_regularization=True)
     model.train()
-    model.step = 10
+    model.set_step(10)
     with torch.no_grad():
         model.gauss_params["scales"][0] = torch.tensor([0.0, -5.0, -5.0])  # ratio e^5 > 10
     out = model.get_outputs(dataset.cameras[0])
@@ -117,7 +118,7 @@ def test_logged_gt_kurtosis_reads_the_cached_target(demo_train, monkeypatch):
 
     import kc_splatfacto.losses.frequency as frequency
 
-    model, dataset = make_model(demo_train, wavelet_weight=1e-3, kc_weight=1e-5, cbc_weight=1e-2)
+    model, dataset = make_model(demo_train, frequency=FrequencyLossConfig())
     out = model.get_outputs(dataset.cameras[2])
     batch = {"image": dataset.image_uint8(2), "image_idx": 2}
     model.get_loss_dict(out, batch)  # caches the target
@@ -167,14 +168,14 @@ def test_evaluate_split_matches_numpy_psnr_and_kornia_ssim(demo_train):
 
 def test_frequency_terms_equal_a_direct_frequency_loss_call(demo_train):
     # every frequency setting away from its default, so a field the model's config does not pass on changes the values
-    from kc_splatfacto.losses.frequency import FrequencyLoss, FrequencyLossConfig
+    from kc_splatfacto.losses.frequency import FrequencyLoss
 
     settings = dict(wavelet_weight=2e-3, kc_weight=3e-5, cbc_weight=4e-2, wave="db2", wavelet_levels=2,
                     wavelet_mode="periodization", wavelet_weighting="fine", kc_supervised=False,
                     cbc_supervised=False, cbc_correlation=True)
-    model, dataset = make_model(demo_train, **settings)
+    model, dataset = make_model(demo_train, frequency=FrequencyLossConfig(**settings))
     model.eval()  # fixed background: the direct call sees the same composited GT
-    assert model.config.frequency_loss_config() == FrequencyLossConfig(**settings) == model.frequency_loss.config
+    assert model.frequency_loss.config == FrequencyLossConfig(**settings)
     out = model.get_outputs(dataset.cameras[2])
     losses = model.get_loss_dict(out, {"image": dataset.image_uint8(2), "image_idx": 2})
     direct_loss = FrequencyLoss(**settings)
@@ -212,7 +213,7 @@ def test_views_cap_the_sh_coefficients_the_model_holds_and_renders(demo_train, v
     assert model.sh_degree == degree
     assert model.features_rest.shape[1] == (degree + 1) ** 2 - 1
     model.train()
-    model.step = 10**6  # past every SH interval: the degree in use is the capped one
+    model.set_step(10**6)  # past every SH interval: the degree in use is the capped one
     assert model.sh_degree_to_use() == degree
     rgb = model.get_outputs(dataset.cameras[0])["rgb"]
     assert torch.isfinite(rgb).all()

@@ -192,7 +192,7 @@ def test_real_render_fills_absgrad_for_visible_gaussians():
     state = strategy.initialize_state()
     render, _, info = rasterization(params["means"], params["quats"], params["scales"].exp(),
                                     torch.sigmoid(params["opacities"]).squeeze(-1), torch.sigmoid(params["features_dc"]),
-                                    viewmat[None], K[None], 32, 24, absgrad=True, backend="cpu")
+                                    viewmat[None], K[None], 32, 24, absgrad=True, rasterizer="cpu")
     strategy.step_pre_backward(params, {}, state, 0, info)
     render.square().sum().backward()
     strategy.step_post_backward(params, {}, state, 1, info)

@@ -5,8 +5,6 @@ control (gsplat 1.4's ``DefaultStrategy``) runs on the CPU rasterizer's ``info``
 
 from __future__ import annotations
 
-import dataclasses
-
 import pytest
 import torch
 
@@ -38,8 +36,8 @@ def plugin_model(**overrides):
 
 
 def project_model(**overrides):
-    settings = dataclasses.asdict(FrequencyLossConfig())
-    return SplatfactoModelConfig(num_downscales=0, **{**settings, **overrides}).setup(num_train_data=4).train()
+    return SplatfactoModelConfig(num_downscales=0, frequency=FrequencyLossConfig(), **overrides).setup(
+        num_train_data=4).train()
 
 
 def _inputs(channels: int = 3, seed: int = 1, mask: bool = False):
@@ -71,14 +69,14 @@ def test_the_three_terms_equal_kc_trains_for_the_same_render_and_ground_truth(ch
 def test_a_term_is_computed_only_when_its_weight_is_not_zero_and_the_target_is_cached_per_image():
     pred, batch = _inputs()
     background = torch.tensor([0.2, 0.5, 0.7])
-    model = plugin_model(kc_weight=0.0)
+    model = plugin_model(frequency=FrequencyLossConfig(kc_weight=0.0))
     first = model.get_loss_dict({"rgb": pred, "background": background}, batch)
     assert "kc_loss" not in first and "wavelet_loss" in first and "cbc_loss" in first
     assert list(model.wavelet_targets) == [(2, 1)]  # (image index, downscale factor)
     cached = model.wavelet_targets[(2, 1)]
     again = model.get_loss_dict({"rgb": pred, "background": background}, batch)
     assert model.wavelet_targets[(2, 1)] is cached and torch.equal(again["cbc_loss"], first["cbc_loss"])
-    plain = plugin_model(wavelet_weight=0.0, kc_weight=0.0, cbc_weight=0.0)
+    plain = plugin_model(frequency=FrequencyLossConfig.off())
     assert plain.frequency_loss is None
     assert not set(TERMS) & set(plain.get_loss_dict({"rgb": pred, "background": background}, batch))
 

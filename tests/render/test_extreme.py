@@ -35,7 +35,7 @@ def render_and_backward(params, width, height, backend, bg=None, **kwargs):
     viewmats, Ks = camera(width, height, kwargs.pop("focal", None))
     colors, alphas, meta = rasterization(
         params["means"], params["quats"], params["scales"], params["opacities"], params["colors"], viewmats, Ks,
-        width, height, backgrounds=bg, backend=backend, render_mode="RGB+ED", **kwargs,
+        width, height, backgrounds=bg, rasterizer=backend, render_mode="RGB+ED", **kwargs,
     )
     weights = torch.linspace(-1, 1, colors.numel()).reshape(colors.shape)
     loss = (colors * weights).sum() + alphas.sum()
@@ -165,8 +165,8 @@ def test_size_not_multiple_of_tile_equals_crop_of_larger_render(backend):
     params = gaussians(means, scale=0.08)
     viewmats = torch.eye(4)[None]
     args = [params[k] for k in ("means", "quats", "scales", "opacities", "colors")]
-    small, small_a, _ = rasterization(*args, viewmats, Ks_small, small_w, small_h, backend=backend)
-    big, big_a, _ = rasterization(*args, viewmats, Ks_big, big_w, big_h, backend=backend)
+    small, small_a, _ = rasterization(*args, viewmats, Ks_small, small_w, small_h, rasterizer=backend)
+    big, big_a, _ = rasterization(*args, viewmats, Ks_big, big_w, big_h, rasterizer=backend)
     assert small.shape == (1, small_h, small_w, 3)
     torch.testing.assert_close(small, big[:, :small_h, :small_w], atol=1e-6, rtol=0)
     torch.testing.assert_close(small_a, big_a[:, :small_h, :small_w], atol=1e-6, rtol=0)
@@ -209,4 +209,4 @@ def test_nan_input_is_a_clear_error(backend, field):
     viewmats, Ks = camera(8, 8)
     with pytest.raises(ValueError, match=f"{field} holds 1 NaN"):
         rasterization(params["means"], params["quats"], params["scales"], params["opacities"], params["colors"],
-                      viewmats, Ks, 8, 8, backend=backend)
+                      viewmats, Ks, 8, 8, rasterizer=backend)

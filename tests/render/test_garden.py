@@ -50,7 +50,7 @@ def test_every_camera_reduced_resolution_matches_reference(garden):
     with torch.no_grad():
         for backend, dtype in (("cpu", torch.float32), ("torch", torch.float64)):
             renders[backend] = rasterization(*[t.to(dtype) for t in gaussians(garden)], garden["viewmats"].to(dtype),
-                                             Ks.to(dtype), width, height, render_mode="RGB+ED", backend=backend)
+                                             Ks.to(dtype), width, height, render_mode="RGB+ED", rasterizer=backend)
     fast_colors, fast_alphas, meta = renders["cpu"]
     ref_colors, ref_alphas, _ = (t.float() if torch.is_tensor(t) else t for t in renders["torch"])
     assert fast_colors.shape == (3, height, width, 4)
@@ -71,7 +71,7 @@ def test_reduced_resolution_gradients_match_reference(garden):
     for backend, dtype in (("cpu", torch.float32), ("torch", torch.float64)):
         leaves = [t.to(dtype).clone().requires_grad_(True) for t in gaussians(garden)]
         colors, alphas, meta = rasterization(*leaves, viewmats.to(dtype), Ks[:1].to(dtype), width, height,
-                                             backend=backend)
+                                             rasterizer=backend)
         ((colors * weights.to(dtype)).sum() + alphas.sum()).backward()
         grads[backend] = [t.grad.double() for t in leaves] + [meta["means2d"].grad.double()]
     for name, actual, expected in zip(["means", "quats", "scales", "opacities", "colors", "means2d"],
@@ -111,7 +111,7 @@ def block_mean(image, block):
 
 def test_full_resolution_render_is_the_scene(garden):
     colors, alphas, _ = rasterization(*gaussians(garden), garden["viewmats"], garden["Ks"], garden["width"],
-                                      garden["height"], backend="cpu")
+                                      garden["height"], rasterizer="cpu")
     assert colors.shape == (3, garden["height"], garden["width"], 3)
     assert torch.isfinite(colors).all() and torch.isfinite(alphas).all()
     for cam in range(3):

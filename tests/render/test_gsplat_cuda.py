@@ -1,4 +1,4 @@
-"""gsplat's CUDA rasterizer (``backend="gsplat"``) against the project's compiled CPU path on the same scenes.
+"""gsplat's CUDA rasterizer (``rasterizer="gsplat"``) against the project's compiled CPU path on the same scenes.
 
 Runs only where CUDA and gsplat 1.5.3 are both there (skipped otherwise, as on CI). Colours, alphas and every
 gradient (means, quats, scales, opacities, colours or SH coefficients, viewmats, means2d and its absgrad) are compared
@@ -75,7 +75,7 @@ def render_and_grads(scene: dict, device: str, backend: str, rasterize_mode: str
     colors, alphas, meta = rasterization(
         leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"], leaves["colors"],
         leaves["viewmats"], scene["Ks"].to(device), scene["width"], scene["height"], sh_degree=scene["sh_degree"],
-        rasterize_mode=rasterize_mode, absgrad=True, backend=backend,
+        rasterize_mode=rasterize_mode, absgrad=True, rasterizer=backend,
         backgrounds=torch.full((scene["viewmats"].shape[0], 3), 0.25, device=device),
     )
     if weights is None:

@@ -292,7 +292,7 @@ def test_rasterization_cpu_backend_matches_torch_backend(sh_degree, render_mode,
         leaves = [t.clone().requires_grad_(True) for t in params[:5]]
         out_colors, out_alphas, meta = rasterization(
             *leaves, viewmats, Ks, width, height, sh_degree=sh_degree, backgrounds=backgrounds,
-            render_mode=render_mode, rasterize_mode=rasterize_mode, absgrad=True, backend=backend)
+            render_mode=render_mode, rasterize_mode=rasterize_mode, absgrad=True, rasterizer=backend)
         g = torch.Generator().manual_seed(3)
         loss = ((out_colors * torch.randn(out_colors.shape, generator=g)).sum()
                 + (out_alphas * torch.randn(out_alphas.shape, generator=g)).sum())

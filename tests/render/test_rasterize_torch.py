@@ -136,7 +136,7 @@ def test_gradcheck_reference_tiny_scene(rasterize_mode):
     def render(means, quats, scales, opacities, sh):
         colors, alphas, _ = rasterization(
             means, quats, scales, opacities, sh, viewmats, Ks, width, height, sh_degree=1, backgrounds=bg,
-            tile_size=4, render_mode="RGB+ED", rasterize_mode=rasterize_mode, backend="torch",
+            tile_size=4, render_mode="RGB+ED", rasterize_mode=rasterize_mode, rasterizer="torch",
         )
         return colors, alphas
 
@@ -176,7 +176,7 @@ def test_means2d_grad_and_absgrad_against_per_pixel_autograd():
     Ks = intrinsics(width, height, 9.0, 1)
     weights = torch.randn(1, height, width, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
     out, _, meta = rasterization(
-        means, quats, scales, opacities, colors, viewmats, Ks, width, height, absgrad=True, backend="torch"
+        means, quats, scales, opacities, colors, viewmats, Ks, width, height, absgrad=True, rasterizer="torch"
     )
     means2d = meta["means2d"]
     (out * weights).sum().backward()
@@ -185,7 +185,7 @@ def test_means2d_grad_and_absgrad_against_per_pixel_autograd():
     total = torch.zeros_like(means2d)
     for i in range(height):
         for j in range(width):
-            out2, _, meta2 = rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height, backend="torch")
+            out2, _, meta2 = rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height, rasterizer="torch")
             (grad,) = torch.autograd.grad((out2[0, i, j] * weights[0, i, j]).sum(), meta2["means2d"], allow_unused=True)
             if grad is not None:
                 per_pixel_abs += grad.abs()
@@ -207,15 +207,15 @@ def _scene_for_modes():
 def test_render_modes_follow_gsplat_definitions():
     args = _scene_for_modes()
     means = args[0]
-    rgb, alpha, meta = rasterization(*args, backend="torch")
-    depth, alpha_d, _ = rasterization(*args, render_mode="D", backend="torch")
-    exp_depth, _, _ = rasterization(*args, render_mode="ED", backend="torch")
-    rgbd, _, _ = rasterization(*args, render_mode="RGB+D", backend="torch")
-    rgbed, _, _ = rasterization(*args, render_mode="RGB+ED", backend="torch")
+    rgb, alpha, meta = rasterization(*args, rasterizer="torch")
+    depth, alpha_d, _ = rasterization(*args, render_mode="D", rasterizer="torch")
+    exp_depth, _, _ = rasterization(*args, render_mode="ED", rasterizer="torch")
+    rgbd, _, _ = rasterization(*args, render_mode="RGB+D", rasterizer="torch")
+    rgbed, _, _ = rasterization(*args, render_mode="RGB+ED", rasterizer="torch")
     # accumulated depth = the RGB compositing of per-Gaussian camera z as a colour
     viewmats = args[5]
     z = (torch.einsum("cij,nj->cni", viewmats[:, :3, :3], means) + viewmats[:, None, :3, 3])[..., 2]
-    as_color, _, _ = rasterization(*args[:4], z[..., None], *args[5:], backend="torch")
+    as_color, _, _ = rasterization(*args[:4], z[..., None], *args[5:], rasterizer="torch")
     torch.testing.assert_close(depth, as_color, atol=1e-12, rtol=0)
     torch.testing.assert_close(alpha_d, alpha)
     torch.testing.assert_close(exp_depth, depth / alpha.clamp(min=1e-10))
@@ -229,11 +229,11 @@ def test_render_modes_follow_gsplat_definitions():
 def test_backgrounds_blend_with_transmittance_and_depth_channel_gets_zero():
     args = _scene_for_modes()
     bg = torch.tensor([[0.9, 0.1, 0.4], [0.0, 1.0, 0.2]], dtype=torch.float64)
-    plain, alpha, _ = rasterization(*args, backend="torch")
-    with_bg, _, _ = rasterization(*args, backgrounds=bg, backend="torch")
+    plain, alpha, _ = rasterization(*args, rasterizer="torch")
+    with_bg, _, _ = rasterization(*args, backgrounds=bg, rasterizer="torch")
     torch.testing.assert_close(with_bg, plain + (1 - alpha) * bg[:, None, None, :])
-    rgbd_bg, _, _ = rasterization(*args, backgrounds=bg, render_mode="RGB+D", backend="torch")
-    depth, _, _ = rasterization(*args, render_mode="D", backend="torch")
+    rgbd_bg, _, _ = rasterization(*args, backgrounds=bg, render_mode="RGB+D", rasterizer="torch")
+    depth, _, _ = rasterization(*args, render_mode="D", rasterizer="torch")
     torch.testing.assert_close(rgbd_bg[..., 3:], depth)
 
 
@@ -241,20 +241,20 @@ def test_sh_colors_and_per_camera_colors():
     args = list(_scene_for_modes())
     n = args[0].shape[0]
     sh0 = torch.randn(n, 1, 3, generator=torch.Generator().manual_seed(9), dtype=torch.float64)
-    from_sh, _, _ = rasterization(*args[:4], sh0, *args[5:], sh_degree=0, backend="torch")
-    direct, _, _ = rasterization(*args[:4], torch.clamp_min(0.28209479177387814 * sh0[:, 0] + 0.5, 0), *args[5:], backend="torch")
+    from_sh, _, _ = rasterization(*args[:4], sh0, *args[5:], sh_degree=0, rasterizer="torch")
+    direct, _, _ = rasterization(*args[:4], torch.clamp_min(0.28209479177387814 * sh0[:, 0] + 0.5, 0), *args[5:], rasterizer="torch")
     torch.testing.assert_close(from_sh, direct)
     per_camera = torch.stack([args[4], 1 - args[4]])  # [C, N, 3]
-    both, _, _ = rasterization(*args[:4], per_camera, *args[5:], backend="torch")
-    first, _, _ = rasterization(*args, backend="torch")
-    second, _, _ = rasterization(*args[:4], 1 - args[4], *args[5:], backend="torch")
+    both, _, _ = rasterization(*args[:4], per_camera, *args[5:], rasterizer="torch")
+    first, _, _ = rasterization(*args, rasterizer="torch")
+    second, _, _ = rasterization(*args[:4], 1 - args[4], *args[5:], rasterizer="torch")
     torch.testing.assert_close(both, torch.stack([first[0], second[1]]))
 
 
 def test_antialiased_scales_opacity_by_compensation():
     args = _scene_for_modes()
-    _, _, meta_c = rasterization(*args, backend="torch")
-    _, _, meta_a = rasterization(*args, rasterize_mode="antialiased", backend="torch")
+    _, _, meta_c = rasterization(*args, rasterizer="torch")
+    _, _, meta_a = rasterization(*args, rasterize_mode="antialiased", rasterizer="torch")
     visible = (meta_a["radii"] > 0).all(-1)
     ratio = meta_a["opacities"][visible] / meta_c["opacities"][visible]
     assert (ratio < 1).all() and (ratio > 0).all()
@@ -267,13 +267,13 @@ def test_antialiased_scales_opacity_by_compensation():
 
 
 def test_auto_backend_picks_cpu_for_cpu_tensors():
-    from kc_splatfacto.render import resolve_backend
+    from kc_splatfacto.render import resolve_rasterizer
 
-    assert resolve_backend("auto", torch.device("cpu")) == "cpu"
+    assert resolve_rasterizer("auto", torch.device("cpu")) == "cpu"
     args = _scene_for_modes()
     auto, auto_a, meta = rasterization(*[a.float() if torch.is_tensor(a) else a for a in args])
-    ref, ref_a, _ = rasterization(*[a.float() if torch.is_tensor(a) else a for a in args], backend="torch")
-    assert meta["backend"] == "cpu"
+    ref, ref_a, _ = rasterization(*[a.float() if torch.is_tensor(a) else a for a in args], rasterizer="torch")
+    assert meta["rasterizer"] == "cpu"
     torch.testing.assert_close(auto, ref, atol=1e-5, rtol=0)
     torch.testing.assert_close(auto_a, ref_a, atol=1e-5, rtol=0)
 
@@ -282,43 +282,43 @@ def test_backend_resolution_with_and_without_gsplat(monkeypatch):
     import sys
     import types
 
-    from kc_splatfacto.render import resolve_backend
+    from kc_splatfacto.render import resolve_rasterizer
 
     cuda, cpu = torch.device("cuda"), torch.device("cpu")
     monkeypatch.setitem(sys.modules, "gsplat", types.ModuleType("gsplat"))  # an importable gsplat
-    assert resolve_backend("auto", cuda) == "gsplat"
-    assert resolve_backend("gsplat", cuda) == "gsplat"
-    assert resolve_backend("auto", cpu) == "cpu"
+    assert resolve_rasterizer("auto", cuda) == "gsplat"
+    assert resolve_rasterizer("gsplat", cuda) == "gsplat"
+    assert resolve_rasterizer("auto", cpu) == "cpu"
     with pytest.raises(RuntimeError, match="needs CUDA tensors"):
-        resolve_backend("gsplat", cpu)
+        resolve_rasterizer("gsplat", cpu)
     with pytest.raises(ValueError, match="needs CPU tensors"):
-        resolve_backend("cpu", cuda)
+        resolve_rasterizer("cpu", cuda)
     monkeypatch.setitem(sys.modules, "gsplat", None)  # import gsplat now raises ImportError
     with pytest.raises(RuntimeError, match="pip install gsplat"):
-        resolve_backend("gsplat", cuda)
+        resolve_rasterizer("gsplat", cuda)
     with pytest.raises(RuntimeError, match="gsplat is not installed"):
-        resolve_backend("auto", cuda)
-    assert resolve_backend("auto", cpu) == "cpu"
+        resolve_rasterizer("auto", cuda)
+    assert resolve_rasterizer("auto", cpu) == "cpu"
 
 
 def test_backend_errors_are_clear():
     args = _scene_for_modes()
     with pytest.raises(ValueError, match="backend must be one of"):
-        rasterization(*args, backend="opengl")
+        rasterization(*args, rasterizer="opengl")
     gsplat_installed = True
     try:
         import gsplat  # noqa: F401
     except Exception:
         gsplat_installed = False
     with pytest.raises(RuntimeError, match="gsplat"):
-        rasterization(*args, backend="gsplat")  # CPU tensors: an error either way, never a silent fallback
+        rasterization(*args, rasterizer="gsplat")  # CPU tensors: an error either way, never a silent fallback
     if not gsplat_installed:
         with pytest.raises(RuntimeError, match="pip install gsplat"):
-            rasterization(*args, backend="gsplat")
+            rasterization(*args, rasterizer="gsplat")
     with pytest.raises(ValueError, match="render_mode"):
-        rasterization(*args, render_mode="RGBD", backend="torch")
+        rasterization(*args, render_mode="RGBD", rasterizer="torch")
     with pytest.raises(ValueError, match="opacities must be"):
-        rasterization(*args[:3], args[3][:, None], *args[4:], backend="torch")
+        rasterization(*args[:3], args[3][:, None], *args[4:], rasterizer="torch")
 
 
 @pytest.mark.parametrize("backend", ["torch", "cpu"])
@@ -335,7 +335,7 @@ def test_split_sh_colors_render_and_differentiate_as_one_tensor(backend):
         dc = shs[:, :1].clone().requires_grad_(True)
         rest = shs[:, 1:].clone().requires_grad_(True)
         colors = SplitSH(dc, rest) if split else torch.cat([dc, rest], dim=1)
-        image, _, _ = rasterization(*args[:4], colors, *args[5:], sh_degree=3, backend=backend)
+        image, _, _ = rasterization(*args[:4], colors, *args[5:], sh_degree=3, rasterizer=backend)
         (image * torch.linspace(-1, 1, image.numel(), dtype=image.dtype).reshape(image.shape)).sum().backward()
         results.append((image.detach(), dc.grad, rest.grad))
     for a, b in zip(*results):
@@ -351,4 +351,4 @@ def test_split_sh_colors_without_sh_degree_is_a_clear_error(backend):
     n = args[0].shape[0]
     shs = torch.zeros(n, 4, 3, dtype=args[0].dtype)
     with pytest.raises(ValueError, match="pass sh_degree"):
-        rasterization(*args[:4], SplitSH(shs[:, :1], shs[:, 1:]), *args[5:], backend=backend)
+        rasterization(*args[:4], SplitSH(shs[:, :1], shs[:, 1:]), *args[5:], rasterizer=backend)
