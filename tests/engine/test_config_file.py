@@ -212,9 +212,10 @@ def test_a_tag_other_than_a_config_dataclass_is_refused_naming_its_line(saved, t
 def test_a_path_must_be_a_list_of_strings(saved):
     _, path = saved
     text = path.read_text()
-    path.write_text(text.replace("!!python/object/apply:pathlib.PosixPath\n      - demo",
-                                 "!!python/object/apply:pathlib.PosixPath\n      - 1", 1))
-    with pytest.raises(ConfigFileError, match=r"a path must be a list of strings, got \[1\]"):
+    assert "\noutput_dir: !!python/object/apply:pathlib.PosixPath\n- /\n" in text
+    path.write_text(text.replace("\noutput_dir: !!python/object/apply:pathlib.PosixPath\n- /\n",
+                                 "\noutput_dir: !!python/object/apply:pathlib.PosixPath\n- 1\n- /\n"))
+    with pytest.raises(ConfigFileError, match=r"a path must be a list of strings, got \[1, '/', "):
         read_config_file(path, TrainerConfig)
 
 
