@@ -11,9 +11,11 @@ from pathlib import Path
 import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "kc_splatfacto"
-#: lower index = lower layer; a module may import its own layer and lower ones (registry/atomic/metrics: leaves)
-LAYERS = ["atomic", "registry", "metrics", "render", "losses", "data", "model", "engine", "analysis", "study", "viewer",
-          "cli", "nerfstudio_plugin"]
+#: lower index = lower layer; a module may import its own layer and lower ones. The top-level modules are leaves any
+#: layer may use: errors (imports nothing of the package), atomic (nothing), backend (errors), lpips (nothing),
+#: registry (errors), metrics (lpips). Every top-level module and subpackage must be in one layer.
+LAYERS = ["errors", "atomic", "backend", "lpips", "registry", "metrics", "render", "losses", "data", "model", "engine",
+          "analysis", "study", "viewer", "cli", "nerfstudio_plugin"]
 
 
 def _is_type_checking_block(node: ast.AST) -> bool:
@@ -101,6 +103,28 @@ def find_circle(graph: dict[str, set[str]]) -> list[str] | None:
         if circle:
             return circle
     return None
+
+
+def modules_without_a_layer(package_dir: Path = PACKAGE) -> list[str]:
+    """Top-level modules and subpackages (any folder holding Python files) of the package that no layer names."""
+    found = [p.stem if p.is_file() else p.name for p in package_dir.iterdir()
+             if (p.is_file() and p.suffix == ".py" and p.stem != "__init__") or (p.is_dir() and any(p.rglob("*.py")))]
+    return sorted(name for name in found if name not in LAYERS)
+
+
+def test_every_module_is_in_a_layer():
+    """A new top-level module or subpackage must be placed in LAYERS (and docs/architecture.md): one in no layer would
+    escape the import check below."""
+    assert modules_without_a_layer() == [], f"add these to LAYERS: {modules_without_a_layer()}"
+
+
+def test_the_layer_check_finds_a_new_module_and_subpackage(tmp_path):
+    package = _write_package(tmp_path, {"errors.py": "", "helpers.py": "", "newpkg/__init__.py": "",
+                                        "plain_folder/tool.py": "", "render/__init__.py": ""})
+    (package / "__pycache__").mkdir()
+    (package / "notes").mkdir()
+    (package / "notes" / "readme.txt").write_text("no Python here")
+    assert modules_without_a_layer(package) == ["helpers", "newpkg", "plain_folder"]
 
 
 def test_imports_only_go_down_the_layers():

@@ -176,10 +176,13 @@ def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> dic
         with torch.serialization.safe_globals(_numpy_rng_globals()):
             payload = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as exc:
-        refused = re.search(r"Unsupported global: GLOBAL (\S+)", str(exc))
+        # torch words a refused global three ways: "Unsupported global: GLOBAL X" (not allowlisted), "unsupported
+        # GLOBAL X whose module M is blocked" (os, subprocess, ...), "but got <class 'X'>" (a numpy dtype)
+        refused = re.search(r"[Uu]nsupported (?:global: )?GLOBAL (\S+)|but got <class '([^']+)'>", str(exc))
         if refused:  # weights_only refused a global: the file asks to run code, not to rebuild data
             raise CheckpointError(
-                f"checkpoint {path} holds objects other than tensors and plain values ({refused.group(1)}); "
+                f"checkpoint {path} holds objects other than tensors and plain values "
+                f"({refused.group(1) or refused.group(2)}); "
                 "refusing to load it, since it could run code"
             ) from exc
         raise CheckpointError(
