@@ -23,7 +23,7 @@ import math
 import os
 import shutil
 import tempfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -367,16 +367,21 @@ def write_colmap_text_model(
 
 @dataclass
 class DemoSceneSpec:
-    """What a generated demo scene depends on (its cache key)."""
+    """What a generated demo scene depends on (its cache key): these fields, each written here only, are also the
+    demo dataparser's (:class:`DemoDataParserConfig` inherits them: ``--width 64`` on the command line)."""
 
     seed: int = 0
+    """Generator seed: the same seed gives identical images, cameras and points."""
     width: int = 160
     """image width in pixels"""
     height: int = 120
     """image height in pixels"""
     num_cameras: int = 24
+    """Cameras on the arc; even positions train, odd test."""
     num_points: int = 2000
+    """Seed points sampled from the surfaces seen by the train views."""
     point_noise: float = 0.01
+    """Standard deviation of the Gaussian noise on seed points, scene units (the scene is about 9 units wide)."""
 
     def key(self) -> str:
         return (
@@ -391,6 +396,12 @@ class DemoSceneSpec:
             raise DataParserError(f"the demo scene needs at least 2 cameras (1 train, 1 test), got {self.num_cameras}")
         if self.num_points < 1 or self.point_noise < 0:
             raise DataParserError("demo num_points must be >= 1 and point_noise >= 0")
+
+
+def spec_values(spec: DemoSceneSpec) -> dict:
+    """{field: value} of the :class:`DemoSceneSpec` fields of ``spec`` (a spec, or a demo dataparser config), in
+    their declared order."""
+    return {f.name: getattr(spec, f.name) for f in fields(DemoSceneSpec)}
 
 
 def generate_demo_scene(spec: DemoSceneSpec, folder: Path) -> Path:
@@ -412,7 +423,7 @@ def generate_demo_scene(spec: DemoSceneSpec, folder: Path) -> Path:
         scene, c2ws[0::2], intrinsics, spec.width, spec.height, spec.num_points, spec.point_noise, rng
     )
     write_colmap_text_model(folder / "sparse" / "0", spec.width, spec.height, intrinsics, names, c2ws, xyz, rgb)
-    (folder / "demo.json").write_text(json.dumps({"version": DEMO_VERSION, **spec.__dict__}, indent=2))
+    (folder / "demo.json").write_text(json.dumps({"version": DEMO_VERSION, **spec_values(spec)}, indent=2))
     return folder
 
 
@@ -443,27 +454,20 @@ def ensure_demo_scene(spec: DemoSceneSpec, cache_dir: Path | None = None) -> Pat
 
 
 @dataclass
-class DemoDataParserConfig(Spars3rDataParserConfig):
-    """The generated demo scene (``--data demo``); ``data`` is ignored and set to the cached scene folder."""
+class DemoDataParserConfig(DemoSceneSpec, Spars3rDataParserConfig):
+    """The generated demo scene (``--data demo``); ``data`` is ignored and set to the cached scene folder.
+
+    The scene's fields (seed, width, height, num_cameras, num_points, point_noise) are :class:`DemoSceneSpec`'s; as
+    the first base it puts them after the SPARS3R parser's fields, where the command line and ``config.yml`` list them.
+    """
 
     data: Path = Path("demo")
-    seed: int = 0
-    """Generator seed: the same seed gives identical images, cameras and points."""
-    width: int = 160
-    """image width in pixels"""
-    height: int = 120
-    """image height in pixels"""
-    num_cameras: int = 24
-    """Cameras on the arc; even positions train, odd test."""
-    num_points: int = 2000
-    """Seed points sampled from the surfaces seen by the train views."""
-    point_noise: float = 0.01
-    """Standard deviation of the Gaussian noise on seed points, scene units (the scene is about 9 units wide)."""
     demo_cache_dir: Path | None = None
     """Where generated scenes go; None: ``$KC_SPLATFACTO_CACHE/demo`` (``~/.cache/kc_splatfacto/demo``)."""
 
     def spec(self) -> DemoSceneSpec:
-        return DemoSceneSpec(self.seed, self.width, self.height, self.num_cameras, self.num_points, self.point_noise)
+        """The scene this config generates, as a bare :class:`DemoSceneSpec`."""
+        return DemoSceneSpec(**spec_values(self))
 
     def setup(self) -> Spars3rDataParser:
         folder = ensure_demo_scene(self.spec(), self.demo_cache_dir)
