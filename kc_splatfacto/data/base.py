@@ -18,7 +18,7 @@ import os
 import unicodedata
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 import torch
@@ -75,9 +75,18 @@ class DataParserConfig:
 
 
 class DataParser:
-    """Turns a scene folder into one :class:`DataparserOutputs` per split."""
+    """Turns a scene folder into one :class:`DataparserOutputs` per split.
+
+    A subclass implements ``_generate_dataparser_outputs(split)``. :meth:`get_dataparser_outputs` calls it once the
+    split's name and the scene (:meth:`check_scene`: ``config.data`` is a folder, or a file too where
+    ``scene_may_be_file``) are checked, and refuses an empty result.
+    """
 
     config: DataParserConfig
+    #: what ``config.data`` holds, as the scene check's messages name it ("COLMAP scene folder")
+    scene_name: ClassVar[str] = "scene folder"
+    #: whether ``config.data`` may also be a file (a transforms.json) rather than a folder only
+    scene_may_be_file: ClassVar[bool] = False
 
     def __init__(self, config: DataParserConfig):
         self.config = config
@@ -95,16 +104,37 @@ class DataParser:
         """The split's images and cameras ("train", "val" or "test"), in the normalized world."""
         if split not in SPLITS:
             raise DataParserError(f"unknown split '{split}': use one of {', '.join(SPLITS)}")
+        self.check_scene()
         outputs = self._generate_dataparser_outputs(split)
         if len(outputs.image_filenames) == 0:
-            raise DataParserError(
-                f"split '{split}' of {self.config.data} is empty: check the split lists / eval mode of "
-                f"{type(self.config).__name__}"
-            )
+            raise empty_split_error(self.config, split)
         return outputs
+
+    def check_scene(self) -> None:
+        """``config.data`` is there: a folder (or, where ``scene_may_be_file``, a file); a
+        :class:`DataParserError` naming it as ``scene_name`` says otherwise."""
+        data = Path(self.config.data)
+        if not (self.scene_may_be_file and data.exists()):
+            existing_folder(data, self.scene_name, "check --data")
 
     def _generate_dataparser_outputs(self, split: str) -> DataparserOutputs:
         raise NotImplementedError
+
+
+def existing_folder(path: Path, name: str, fix: str) -> Path:
+    """``path`` when it is a folder; else a :class:`DataParserError` "``name`` ``path`` does not exist: ``fix``" (or
+    "is not a folder" when something else is there)."""
+    if path.is_dir():
+        return path
+    state = "is not a folder" if path.exists() else "does not exist"
+    raise DataParserError(f"{name} {path} {state}: {fix}")
+
+
+def empty_split_error(config: DataParserConfig, split: str) -> DataParserError:
+    """The error for a split without images: the split, the scene and the config whose lists / eval mode chose it."""
+    return DataParserError(
+        f"split '{split}' of {config.data} is empty: check the split lists / eval mode of {type(config).__name__}"
+    )
 
 
 def _check_common_config(config: DataParserConfig) -> None:

@@ -37,6 +37,8 @@ from kc_splatfacto.data.base import (
     DataParser,
     DataParserConfig,
     DataParserError,
+    empty_split_error,
+    existing_folder,
     make_cameras,
     normalize_poses,
     scene_scale_of,
@@ -468,6 +470,11 @@ def undistorted_paths(
 # ----------------------------------------------------------------------------------------------------------------
 
 
+def image_folder(scene: Path, images_path: Path) -> Path:
+    """The image folder ``images_path`` (a config's, relative to ``scene``), checked to be a folder."""
+    return existing_folder(scene / images_path, "image folder", "set images_path to the scene's image folder")
+
+
 def check_image_sizes(paths: list[Path], cameras: list[ColmapCamera], camera_names: list[str]) -> None:
     """Each image must have its camera's size; names the first offender."""
     for path, camera, camera_name in zip(paths, cameras, camera_names):
@@ -532,10 +539,8 @@ def colmap_split_outputs(
 
     Only the split's images are checked, undistorted and downscaled.
     """
-    if not split_names:
-        raise DataParserError(
-            f"split '{split}' of {config.data} is empty: check the split lists / eval mode of {type(config).__name__}"
-        )
+    if not split_names:  # before any image is read or derived
+        raise empty_split_error(config, split)
     for name in normalize_names:  # names come from a file someone sent: they must stay inside the image folder
         inside_folder(images_dir, name, f"image name in {model_file(model.path, 'images')}", config.allow_symlinks_out)
     missing = [name for name in split_names if not (images_dir / name).is_file()]
@@ -684,16 +689,11 @@ def split_indices(
 
 class ColmapDataParser(DataParser):
     config: ColmapDataParserConfig
+    scene_name = "COLMAP scene folder"
 
     def _generate_dataparser_outputs(self, split: str) -> DataparserOutputs:
         scene = Path(self.config.data)
-        if not scene.is_dir():
-            raise DataParserError(f"COLMAP scene folder {scene} does not exist: check --data")
-        images_dir = scene / self.config.images_path
-        if not images_dir.is_dir():
-            raise DataParserError(
-                f"image folder {images_dir} does not exist: set images_path to the scene's image folder"
-            )
+        images_dir = image_folder(scene, self.config.images_path)
         model_dir = find_model_dir(scene, self.config.colmap_path)
         model = self.memo(("colmap", model_dir), read_colmap_model, model_dir, self.config.load_3d_points)
         if not model.images:

@@ -23,7 +23,7 @@ import math
 import os
 import shutil
 import tempfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -34,10 +34,12 @@ from kc_splatfacto.data.images import write_image_atomic
 from kc_splatfacto.data.spars3r import Spars3rDataParser, Spars3rDataParserConfig
 from kc_splatfacto.registry import DataParserSpecification
 from kc_splatfacto.render.projection import rotmat_to_quat
-from kc_splatfacto.settings import SEED_MAX, integer, real, setting
+from kc_splatfacto.settings import SEED_MAX, integer, range_violations, real, setting
 
 # Bump when the generator changes: it is part of the cache key, so stale scenes are never reused.
 DEMO_VERSION = 2  # 2: camera quaternions from render.projection.rotmat_to_quat (within 4e-16 of v1's)
+MIN_SIZE = 8
+"""the smallest demo image side in pixels"""
 TEXTURE_SIZE = 256
 TEXEL_SIZE = 1.0 / 40.0  # scene units per texel; a texture tile covers 6.4 units and repeats
 SUBSAMPLE_OFFSETS = (0.25, 0.75)
@@ -368,16 +370,21 @@ def write_colmap_text_model(
 
 @dataclass
 class DemoSceneSpec:
-    """What a generated demo scene depends on (its cache key)."""
+    """What a generated demo scene depends on (its cache key): these fields, each written here only, are also the
+    demo dataparser's (:class:`DemoDataParserConfig` inherits them: ``--width 64`` on the command line)."""
 
-    seed: int = 0
-    width: int = 160
+    seed: int = setting(0, integer(0, SEED_MAX))
+    """Generator seed: the same seed gives identical images, cameras and points."""
+    width: int = setting(160, integer(MIN_SIZE))
     """image width in pixels"""
-    height: int = 120
+    height: int = setting(120, integer(MIN_SIZE))
     """image height in pixels"""
-    num_cameras: int = 24
-    num_points: int = 2000
-    point_noise: float = 0.01
+    num_cameras: int = setting(24, integer(2))
+    """Cameras on the arc; even positions train, odd test."""
+    num_points: int = setting(2000, integer(1))
+    """Seed points sampled from the surfaces seen by the train views."""
+    point_noise: float = setting(0.01, real(0.0))
+    """Standard deviation of the Gaussian noise on seed points, scene units (the scene is about 9 units wide)."""
 
     def key(self) -> str:
         return (
@@ -386,12 +393,16 @@ class DemoSceneSpec:
         )
 
     def validate(self) -> None:
-        if self.width < 8 or self.height < 8:
-            raise DataParserError(f"demo scene size {self.width}x{self.height} is too small: use at least 8x8")
-        if self.num_cameras < 2:
-            raise DataParserError(f"the demo scene needs at least 2 cameras (1 train, 1 test), got {self.num_cameras}")
-        if self.num_points < 1 or self.point_noise < 0:
-            raise DataParserError("demo num_points must be >= 1 and point_noise >= 0")
+        """A :class:`DataParserError` naming the first field outside its range (the ranges beside the fields)."""
+        for violation in range_violations(self):
+            raise DataParserError(f"demo scene: {violation.name} = {violation.value!r} is not allowed: it must be "
+                                  f"{violation.allowed}")
+
+
+def spec_values(spec: DemoSceneSpec) -> dict:
+    """{field: value} of the :class:`DemoSceneSpec` fields of ``spec`` (a spec, or a demo dataparser config), in
+    their declared order."""
+    return {f.name: getattr(spec, f.name) for f in fields(DemoSceneSpec)}
 
 
 def generate_demo_scene(spec: DemoSceneSpec, folder: Path) -> Path:
@@ -413,7 +424,7 @@ def generate_demo_scene(spec: DemoSceneSpec, folder: Path) -> Path:
         scene, c2ws[0::2], intrinsics, spec.width, spec.height, spec.num_points, spec.point_noise, rng
     )
     write_colmap_text_model(folder / "sparse" / "0", spec.width, spec.height, intrinsics, names, c2ws, xyz, rgb)
-    (folder / "demo.json").write_text(json.dumps({"version": DEMO_VERSION, **spec.__dict__}, indent=2))
+    (folder / "demo.json").write_text(json.dumps({"version": DEMO_VERSION, **spec_values(spec)}, indent=2))
     return folder
 
 
@@ -444,27 +455,20 @@ def ensure_demo_scene(spec: DemoSceneSpec, cache_dir: Path | None = None) -> Pat
 
 
 @dataclass
-class DemoDataParserConfig(Spars3rDataParserConfig):
-    """The generated demo scene (``--data demo``); ``data`` is ignored and set to the cached scene folder."""
+class DemoDataParserConfig(DemoSceneSpec, Spars3rDataParserConfig):
+    """The generated demo scene (``--data demo``); ``data`` is ignored and set to the cached scene folder.
+
+    The scene's fields (seed, width, height, num_cameras, num_points, point_noise) are :class:`DemoSceneSpec`'s; as
+    the first base it puts them after the SPARS3R parser's fields, where the command line and ``config.yml`` list them.
+    """
 
     data: Path = Path("demo")
-    seed: int = setting(0, integer(0, SEED_MAX))
-    """Generator seed: the same seed gives identical images, cameras and points."""
-    width: int = setting(160, integer(1))
-    """image width in pixels"""
-    height: int = setting(120, integer(1))
-    """image height in pixels"""
-    num_cameras: int = setting(24, integer(2))
-    """Cameras on the arc; even positions train, odd test."""
-    num_points: int = setting(2000, integer(1))
-    """Seed points sampled from the surfaces seen by the train views."""
-    point_noise: float = setting(0.01, real(0.0))
-    """Standard deviation of the Gaussian noise on seed points, scene units (the scene is about 9 units wide)."""
     demo_cache_dir: Path | None = None
     """Where generated scenes go; None: ``$KC_SPLATFACTO_CACHE/demo`` (``~/.cache/kc_splatfacto/demo``)."""
 
     def spec(self) -> DemoSceneSpec:
-        return DemoSceneSpec(self.seed, self.width, self.height, self.num_cameras, self.num_points, self.point_noise)
+        """The scene this config generates, as a bare :class:`DemoSceneSpec`."""
+        return DemoSceneSpec(**spec_values(self))
 
     def setup(self) -> Spars3rDataParser:
         folder = ensure_demo_scene(self.spec(), self.demo_cache_dir)

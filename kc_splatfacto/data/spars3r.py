@@ -20,7 +20,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from kc_splatfacto.data.base import DataParser, DataParserConfig, DataParserError, read_split_list
-from kc_splatfacto.data.colmap import colmap_split_outputs, find_model_dir, has_model, read_colmap_model
+from kc_splatfacto.data.colmap import (
+    colmap_split_outputs,
+    find_model_dir,
+    has_model,
+    image_folder,
+    read_colmap_model,
+)
 from kc_splatfacto.data.outputs import DataparserOutputs
 from kc_splatfacto.data.paths import check_names_inside
 from kc_splatfacto.registry import DataParserSpecification
@@ -81,15 +87,12 @@ def is_spars3r_scene(scene: Path) -> bool:
 
 class Spars3rDataParser(DataParser):
     config: Spars3rDataParserConfig
+    scene_name = "SPARS3R scene folder"
 
     def _generate_dataparser_outputs(self, split: str) -> DataparserOutputs:
         scene = Path(self.config.data)
-        if not scene.is_dir():
-            raise DataParserError(f"SPARS3R scene folder {scene} does not exist: check --data")
         if self.config.images_path is not None:
-            images_dir = scene / self.config.images_path
-            if not images_dir.is_dir():
-                raise DataParserError(f"image folder {images_dir} does not exist: fix images_path")
+            images_dir = image_folder(scene, self.config.images_path)
         else:
             images_dir = find_first(scene, IMAGE_DIR_NAMES, "image folder", is_dir=True)
         train_list = find_first(scene, TRAIN_LIST_NAMES, "train list")

@@ -255,11 +255,11 @@ def frame_camera(frame: dict, meta: dict, json_path: Path, image_path: Path | No
 
 class TransformsDataParser(DataParser):
     config: TransformsDataParserConfig
+    scene_name = "scene"
+    scene_may_be_file = True  # a .json file, or the folder holding transforms.json
 
     def _generate_dataparser_outputs(self, split: str) -> DataparserOutputs:
         data = Path(self.config.data)
-        if not data.exists():
-            raise DataParserError(f"scene {data} does not exist: check --data")
         meta, base, json_path = self.memo("transforms.json", load_transforms_json, data)
 
         frames: list[tuple[Path, dict]] = []

@@ -1,6 +1,7 @@
 """Bad scene input: each case is a clear DataParserError naming the file or argument and the fix."""
 
 import re
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -10,6 +11,7 @@ from kc_splatfacto.data import resolve_dataparser
 from kc_splatfacto.data.base import DataParserError
 from kc_splatfacto.data.colmap import ColmapDataParserConfig
 from kc_splatfacto.data.spars3r import Spars3rDataParserConfig
+from kc_splatfacto.data.transforms import TransformsDataParserConfig
 from kc_splatfacto.registry import DataParserSpecification
 from tests.data_scenes import scene_variant
 
@@ -27,6 +29,32 @@ def test_missing_scene_folder(tmp_path):
         parse(Spars3rDataParserConfig(data=tmp_path / "nowhere"))
     with pytest.raises(DataParserError, match="nowhere does not exist"):
         parse(ColmapDataParserConfig(data=tmp_path / "nowhere"))
+
+
+@pytest.mark.parametrize(
+    "config_type, name, may_be_file",
+    [(ColmapDataParserConfig, "COLMAP scene folder", False), (Spars3rDataParserConfig, "SPARS3R scene folder", False),
+     (TransformsDataParserConfig, "scene", True)],
+)
+def test_the_scene_check_is_the_base_class_one(tmp_path, config_type, name, may_be_file):
+    """One check for every parser (DataParser.check_scene), before the split's outputs are built: the parser's name
+    for the scene, and a file refused where the format needs a folder."""
+    with pytest.raises(DataParserError, match=f"^{name} {tmp_path / 'nowhere'} does not exist: check --data$"):
+        parse(config_type(data=tmp_path / "nowhere"), "test")
+    a_file = tmp_path / "scene.json"
+    a_file.write_text("{}")
+    if may_be_file:  # the file itself is read (and found wanting), not refused as a file
+        with pytest.raises(DataParserError, match="has no 'frames' list"):
+            parse(config_type(data=a_file))
+    else:
+        with pytest.raises(DataParserError, match=f"^{name} {a_file} is not a folder: check --data$"):
+            parse(config_type(data=a_file))
+
+
+@pytest.mark.parametrize("config_type", [ColmapDataParserConfig, Spars3rDataParserConfig])
+def test_a_configured_image_folder_must_be_a_folder(castle_p30, config_type):
+    with pytest.raises(DataParserError, match="image folder .*pictures does not exist: set images_path to the scene"):
+        parse(config_type(data=castle_p30, images_path=Path("pictures")))
 
 
 def test_folder_of_unknown_format_says_what_was_expected(tmp_path):

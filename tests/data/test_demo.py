@@ -1,5 +1,9 @@
 """The generated demo scene: determinism, the 12/12 split, seed points on the analytic surfaces, exact images."""
 
+import dataclasses
+import hashlib
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -135,9 +139,9 @@ def test_resolve_dataparser_demo_uses_the_cache_env(monkeypatch, tmp_path):
 
 
 def test_demo_spec_rejects_bad_sizes(tmp_path):
-    with pytest.raises(DataParserError, match="too small"):
+    with pytest.raises(DataParserError, match="width = 4 is not allowed: it must be at least 8"):
         ensure_demo_scene(DemoSceneSpec(width=4, height=4), tmp_path)
-    with pytest.raises(DataParserError, match="at least 2 cameras"):
+    with pytest.raises(DataParserError, match="num_cameras = 1 is not allowed: it must be at least 2"):
         ensure_demo_scene(DemoSceneSpec(num_cameras=1), tmp_path)
 
 
@@ -147,3 +151,122 @@ def test_unwritable_cache_is_a_clear_error(monkeypatch, tmp_path):
     monkeypatch.setenv("KC_SPLATFACTO_CACHE", str(blocker))
     with pytest.raises(DataParserError, match="cannot write the demo scene .*KC_SPLATFACTO_CACHE"):
         resolve_dataparser("demo").setup()
+
+
+# ------------------------------------------------------------------------------------------------ one home for the
+# scene's fields (issue 38): DemoSceneSpec holds them, DemoDataParserConfig inherits them; caches, scenes, flags and
+# config.yml files of earlier versions stay valid.
+
+SPEC_FIELDS = ("seed", "width", "height", "num_cameras", "num_points", "point_noise")
+#: DemoDataParserConfig's fields in the order the command line and config.yml have always listed them
+CONFIG_FIELDS = ("data", "downscale_factor", "orientation_method", "center_method", "auto_scale_poses",
+                 "allow_symlinks_out", "cache_dir", "images_path", "colmap_path", "load_3d_points", "masks_path",
+                 *SPEC_FIELDS, "demo_cache_dir")
+
+
+def scene_digest(folder):
+    """Digest of a scene folder's files: decoded pixels of the PNGs (the encoder's bytes are the codec's business),
+    the bytes of every other file (lists, COLMAP text model, demo.json)."""
+    digest = hashlib.sha256()
+    for path in sorted(p for p in folder.rglob("*") if p.is_file()):
+        digest.update(str(path.relative_to(folder)).encode())
+        digest.update(read_image(path).tobytes() if path.suffix == ".png" else path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def test_the_scene_fields_are_written_once():
+    assert tuple(f.name for f in dataclasses.fields(DemoSceneSpec)) == SPEC_FIELDS
+    assert tuple(f.name for f in dataclasses.fields(DemoDataParserConfig)) == CONFIG_FIELDS
+    for name in SPEC_FIELDS:  # the config's field is the spec's own Field: one default, one docstring
+        assert DemoDataParserConfig.__dataclass_fields__[name] is DemoSceneSpec.__dataclass_fields__[name]
+    config = DemoDataParserConfig(seed=5, width=40, height=30, num_cameras=4, num_points=50, point_noise=0.25)
+    assert type(config.spec()) is DemoSceneSpec
+    assert config.spec() == DemoSceneSpec(5, 40, 30, 4, 50, 0.25)
+
+
+@pytest.mark.parametrize(
+    "values, key",  # the keys the code before the merge gave: cached scenes keep their folder
+    [({}, "demo-v2-seed0-160x120-cams24-pts2000-noise0.01"),
+     ({"width": 64, "height": 48, "num_points": 300}, "demo-v2-seed0-64x48-cams24-pts300-noise0.01"),
+     ({"seed": 3, "width": 33, "height": 17, "num_cameras": 3, "num_points": 7, "point_noise": 0.0},
+      "demo-v2-seed3-33x17-cams3-pts7-noise0"),
+     ({"width": 40, "height": 30, "num_cameras": 4, "num_points": 50, "point_noise": 1.25e-7},
+      "demo-v2-seed0-40x30-cams4-pts50-noise1.25e-07")],
+)
+def test_the_cache_key_is_unchanged(values, key):
+    assert DemoSceneSpec(**values).key() == key
+    assert DemoDataParserConfig(**values).spec().key() == key
+    assert DemoDataParserConfig(**values).key() == key
+
+
+def test_the_generated_scene_is_unchanged(demo_parser, tmp_path):
+    """Digests of scenes the generator wrote before the spec and the config shared their fields."""
+    assert scene_digest(demo_parser.config.data) == "242bbc160c166c49"  # the default scene, 160x120
+    small = DemoDataParserConfig(demo_cache_dir=tmp_path, width=40, height=30, num_cameras=4, num_points=50,
+                                 point_noise=0.1)
+    folder = small.setup().config.data
+    assert folder == tmp_path / "demo-v2-seed0-40x30-cams4-pts50-noise0.1"
+    assert scene_digest(folder) == "7cf36467099608a2"
+    assert json.loads((folder / "demo.json").read_text()) == {"version": 2, **dataclasses.asdict(small.spec())}
+
+
+#: the dataparser part of a config.yml the code before the merge wrote (kc-train splatfacto --data demo demo ...)
+OLD_CONFIG_YML = """\
+!!python/object:kc_splatfacto.data.demo.DemoDataParserConfig
+data: !!python/object/apply:pathlib.PosixPath
+- demo
+downscale_factor: 1
+orientation_method: up
+center_method: poses
+auto_scale_poses: true
+allow_symlinks_out: false
+cache_dir: null
+images_path: null
+colmap_path: null
+load_3d_points: true
+masks_path: null
+seed: 2
+width: 64
+height: 48
+num_cameras: 6
+num_points: 100
+point_noise: 0.02
+demo_cache_dir: null
+"""
+
+
+def test_flags_and_config_yml_of_earlier_runs_give_the_same_config(tmp_path):
+    from kc_splatfacto.cli.train import parse_config
+    from kc_splatfacto.engine.config_file import load_yaml, save_config
+
+    flags = ["--seed", "2", "--width", "64", "--height", "48", "--num-cameras", "6", "--num-points", "100",
+             "--point-noise", "0.02"]
+    parsed = parse_config(["splatfacto", "--data", "demo", "demo", *flags]).pipeline.datamanager.dataparser
+    expected = DemoDataParserConfig(seed=2, width=64, height=48, num_cameras=6, num_points=100, point_noise=0.02)
+    assert parsed == expected
+    assert load_yaml(OLD_CONFIG_YML) == expected  # the strict reader: every key a field, the class where it was
+    save_config(expected, tmp_path / "config.yml")
+    assert (tmp_path / "config.yml").read_text() == OLD_CONFIG_YML  # and written as before, field for field
+
+
+#: the demo subcommand's scene flags as ``--help`` showed them before the merge (whitespace folded)
+HELP_LINES = (
+    "--seed INT Generator seed: the same seed gives identical images, cameras and points. (default: 0)",
+    "--width INT image width in pixels (default: 160)",
+    "--height INT image height in pixels (default: 120)",
+    "--num-cameras INT Cameras on the arc; even positions train, odd test. (default: 24)",
+    "--num-points INT Seed points sampled from the surfaces seen by the train views. (default: 2000)",
+    "--point-noise FLOAT Standard deviation of the Gaussian noise on seed points, scene units (the scene is about 9 "
+    "units wide). (default: 0.01)",
+)
+
+
+def test_help_shows_the_scene_flags_as_before(capsys):
+    from kc_splatfacto.cli.train import parse_config
+
+    with pytest.raises(SystemExit):
+        parse_config(["splatfacto", "--data", "demo", "demo", "--help"])
+    shown = " ".join(capsys.readouterr().out.split())
+    places = [shown.find(line) for line in HELP_LINES]
+    assert -1 not in places and places == sorted(places), shown
+    assert shown.find("--masks-path") < places[0] < places[-1] < shown.find("--demo-cache-dir")
