@@ -41,7 +41,7 @@ TARGET_RATIO = 1.10
 
 def make_config(method: str, scene: Path, out: Path, downscale: int, iterations: int, steps_scale: float):
     config = copy.deepcopy(discover_methods()[method].config)
-    config.pipeline.datamanager.data = scene
+    config.pipeline.datamanager.set_scene(scene)
     config.pipeline.datamanager.dataparser.downscale_factor = downscale
     config.output_dir = out
     config.experiment_name = "bench"

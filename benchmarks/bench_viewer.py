@@ -43,7 +43,7 @@ def make_config(scene: Path, out: Path, downscale: int, steps: int):
     from kc_splatfacto.registry import discover_methods
 
     config = copy.deepcopy(discover_methods()["splatfacto"].config)
-    config.pipeline.datamanager.data = scene
+    config.pipeline.datamanager.set_scene(scene)
     config.pipeline.datamanager.dataparser.downscale_factor = downscale
     config.output_dir = out
     config.experiment_name = "bench-viewer"

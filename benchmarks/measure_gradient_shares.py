@@ -49,8 +49,8 @@ def build(args):
         model._frequency_loss = None
         return model, dataset, label
     config = copy.deepcopy(discover_methods()["kc-splatfacto"].config)
-    config.pipeline.datamanager.data = Path(args.data)
-    config.pipeline.datamanager.dataparser = AutoDataParserConfig(downscale_factor=args.downscale_factor)
+    config.pipeline.datamanager.dataparser = AutoDataParserConfig(data=Path(args.data),
+                                                                  downscale_factor=args.downscale_factor)
     config.pipeline.model.num_downscales = 0
     datamanager = config.pipeline.datamanager.setup(seed=0)
     torch.manual_seed(0)

@@ -71,7 +71,7 @@ def main() -> int:
         print(f"unknown method {args.method}; registered: {', '.join(methods)}", file=sys.stderr)
         return 1
     config = copy.deepcopy(methods[args.method].config)
-    config.pipeline.datamanager.data = args.scene
+    config.pipeline.datamanager.set_scene(args.scene)
     config.pipeline.datamanager.dataparser.downscale_factor = args.downscale
     config.max_num_iterations = args.steps
     config.steps_per_eval_all_images = 0

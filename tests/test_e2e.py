@@ -48,8 +48,7 @@ def test_castle_p30_short_run_raises_test_psnr(tmp_path, castle_p30):
     # 12 sparse views at 96x64: Splatfacto's absgrad threshold densifies almost everything at this size, and the
     # sparse test views drop while the count explodes, so this short run stays inside the (compressed) warm-up
     config = tiny_demo_config("kc-splatfacto", tmp_path, iterations=100, steps_scale=0.2)
-    config.pipeline.datamanager.dataparser = AutoDataParserConfig(downscale_factor=8)  # 96x64 from 768x512
-    config.pipeline.datamanager.data = castle_p30
+    config.pipeline.datamanager.dataparser = AutoDataParserConfig(data=castle_p30, downscale_factor=8)  # 96x64
     config.eval_at_steps = (0,)
     run_dir = Trainer(config).train()
     first, last = evals(run_dir)[0], evals(run_dir)[-1]

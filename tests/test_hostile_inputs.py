@@ -440,7 +440,6 @@ def prepare(case: Case, tmp_path: Path, templates, finished_run) -> Path:
         shutil.copytree(run_dir, root / "run")
         config_path = root / "run" / "config.yml"
         config = load_config(config_path)  # the copy trains on the case's copy of the scene
-        config.pipeline.datamanager.data = None
         config.pipeline.datamanager.dataparser.data = root / "scene"
         save_config(config, config_path)
         for old in (root / "run" / "nerfstudio_models").iterdir():

@@ -132,8 +132,7 @@ def build_run_config(
     config.experiment_name = experiment
     config.output_dir = runs_dir
     config.timestamp = f"seed{seed}"
-    config.pipeline.datamanager.data = Path(data)
-    config.pipeline.datamanager.dataparser = AutoDataParserConfig()  # detected from data
+    config.pipeline.datamanager.dataparser = AutoDataParserConfig(data=Path(data))  # detected from the scene
     if downscale_factor is not None:
         config.pipeline.datamanager.dataparser.downscale_factor = downscale_factor
     config.max_num_iterations = max_steps

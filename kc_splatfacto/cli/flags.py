@@ -18,6 +18,7 @@ import sys
 import textwrap
 import types
 import typing
+from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -45,19 +46,54 @@ MOVED_FLAGS = {
     f"--pipeline.model.{name}": f"--pipeline.model.frequency.{name}"
     for name in ("wavelet-weight", "kc-weight", "cbc-weight", "wave", "wavelet-levels", "wavelet-mode",
                  "wavelet-weighting", "kc-supervised", "cbc-supervised", "cbc-correlation")
-} | {"--pipeline.model.rasterization-backend": "--pipeline.model.rasterizer"}
+} | {"--pipeline.model.rasterization-backend": "--pipeline.model.rasterizer", "--pipeline.datamanager.data": "--data"}
 SHORT_HELP_RUN_FLAGS = 8
 #: help lines the short help words differently from the field's docstring
 SHORT_HELP_TEXT = {"--data": "scene folder (SPARS3R, COLMAP, transforms.json), or 'demo'"}
-#: fields the short help does not name one by one: learning rates and schedules (named by group), the alias of
-#: --data, fields a method fixes
-SHORT_HELP_HIDDEN_PREFIXES = ("optimizers.", "pipeline.datamanager.data", "method-name", "timestamp")
+#: fields the short help does not name one by one: learning rates and schedules (named by group), fields a method
+#: fixes
+SHORT_HELP_HIDDEN_PREFIXES = ("optimizers.", "method-name", "timestamp")
 #: the short help's width and flag column
 SHORT_HELP_WIDTH = 110
 FLAG_COLUMN = 46
 #: tyro's box drawing (rich's, or its ASCII fallback): the sides, and what its top, bottom and rules are made of
 BOX_SIDES = "│|"
 BOX_RULES = "╭╮╰╯─-+="
+
+
+SCENE_FLAG = "--data"
+"""the scene: the dataparser's ``data``, also accepted among the method's options (:func:`move_scene_flag`)"""
+
+
+def subcommand_index(argv: list[str], dataparsers: Collection[str]) -> int:
+    """Where the dataparser subcommand sits in ``METHOD [OPTIONS] [DATAPARSER ...]`` (``len(argv)`` when none): the
+    first dataparser name that is not a flag's value (every flag of kc-train takes a value: ``--data demo`` names a
+    scene, not the ``demo`` subcommand)."""
+    return next((i for i, arg in enumerate(argv) if i > 0 and arg in dataparsers and not argv[i - 1].startswith("--")),
+                len(argv))
+
+
+def move_scene_flag(argv: list[str], dataparsers: Collection[str]) -> list[str]:
+    """``--data SCENE`` given among the method's options (``kc-train METHOD --data SCENE ...``) is the dataparser's
+    ``data`` flag: moved behind the dataparser subcommand (``auto`` when none is named), where tyro reads it. The
+    config holds the scene in that one field."""
+    split = subcommand_index(argv, dataparsers)
+    head, tail = argv[:split], argv[split:]
+    kept: list[str] = []
+    scene: list[str] = []
+    i = 0
+    while i < len(head):
+        if head[i] == SCENE_FLAG and i + 1 < len(head):
+            scene, i = [SCENE_FLAG, head[i + 1]], i + 2
+        elif head[i].startswith(SCENE_FLAG + "="):
+            scene, i = [head[i]], i + 1
+        else:
+            kept.append(head[i])
+            i += 1
+    if not scene:
+        return argv
+    subcommand, rest = (tail[:1], tail[1:]) if tail else (["auto"], [])
+    return kept + subcommand + scene + rest
 
 
 def check_no_moved_flags(args: list[str]) -> None:
@@ -226,7 +262,7 @@ def _wrap(head: str, names: list[str], width: int) -> list[str]:
 def short_help(method: str, description: str, config: Any, prog: str = "kc-train") -> str:
     """A method's help on one screen: the flags of SHORT_HELP_FLAGS with their help, one line each; every other flag
     by name, grouped; the learning-rate/schedule flags and the dataparsers named by group."""
-    flags = config_flags(config)
+    flags = [Flag(SCENE_FLAG, "PATH", None, SHORT_HELP_TEXT[SCENE_FLAG]), *config_flags(config)]
     featured = {f.name: f for f in flags if f.name in SHORT_HELP_FLAGS}
     lines = [f"usage: {prog} {method} --data SCENE [OPTIONS] [DATAPARSER [DATAPARSER OPTIONS]]", "", description, ""]
     for title, names in (("run", SHORT_HELP_FLAGS[:SHORT_HELP_RUN_FLAGS]), ("model", SHORT_HELP_FLAGS[SHORT_HELP_RUN_FLAGS:])):

@@ -26,10 +26,13 @@ from typing import Any
 import tyro
 
 from kc_splatfacto.cli.flags import (
+    SCENE_FLAG,
     check_no_moved_flags,
     config_flags,
     dataparser_flags,
+    move_scene_flag,
     short_help,
+    subcommand_index,
     tyro_errors_as_one_line,
 )
 from kc_splatfacto.cli.main import did_you_mean, run_cli
@@ -90,12 +93,16 @@ def parse_command_line(argv: list[str]):
                         f"{', '.join(sorted(methods))}")
     check_no_moved_flags(argv)
     parsers = dataparser_flags()
-    before_dataparser = argv[1:next((i for i, a in enumerate(argv) if i > 0 and a in parsers), len(argv))]
+    before_dataparser = argv[1:subcommand_index(argv, parsers)]
     if method is not None and any(a in HELP_FLAGS for a in before_dataparser):
         print(short_help(method, methods[method].description, methods[method].config))
         raise SystemExit(0)
     argv = ["--help" if a == HELP_ALL_FLAG else a for a in argv]
-    valid = [f.name for f in config_flags(methods[method].config)] if method else []
+    wants_help = any(a in HELP_FLAGS for a in argv)
+    if method is not None and not wants_help and not any(a == SCENE_FLAG or a.startswith(SCENE_FLAG + "=") for a in argv):
+        raise UserError("no scene given: pass --data PATH (a scene folder, or 'demo' for the demo scene)")
+    argv = move_scene_flag(argv, parsers)
+    valid = [SCENE_FLAG] + ([f.name for f in config_flags(methods[method].config)] if method else [])
     valid += [f.name for flags in parsers.values() for f in flags] + list(HELP_FLAGS)
     with tyro_errors_as_one_line(valid, [*methods, *parsers], "kc-train"):
         return parse_config(argv)

@@ -166,6 +166,13 @@ def _numpy_rng_globals() -> list:
     return [multiarray.multiarray._reconstruct, np.ndarray, np.dtype, type(np.dtype(np.uint32))]
 
 
+def as_random_state(state: Any) -> tuple:
+    """Python's ``random`` state after a round trip through a checkpoint (lists where ``getstate`` gave tuples),
+    ready for ``setstate``."""
+    version, internal, gauss = state
+    return (version, tuple(internal), gauss)
+
+
 def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
     """The payload of a checkpoint file, loaded with ``weights_only=True``; a :class:`CheckpointError` naming the
     file when it is missing, truncated, not a checkpoint, or holds objects other than data."""

@@ -16,6 +16,7 @@ import tyro
 from kc_splatfacto.data.base import DataParserConfig, DataParserError, write_dataparser_transforms
 from kc_splatfacto.data.dataset import ImageDataset
 from kc_splatfacto.data.detect import AutoDataParserConfig
+from kc_splatfacto.engine.checkpoints import as_random_state
 from kc_splatfacto.registry import discover_dataparsers
 
 #: the ``dataparser`` field's annotation: any dataparser config until a command line installs one subcommand per
@@ -47,31 +48,38 @@ def install_dataparser_subcommands() -> None:
 class DataManagerConfig:
     """Which scene to load and how; ``setup()`` builds the :class:`DataManager`."""
 
-    data: Path | None = None
-    """scene folder, or 'demo' for the generated demo scene (given to the dataparser)"""
     dataparser: DataParserUnion = field(default_factory=AutoDataParserConfig)
-    """the dataparser config: a subcommand after the method's options (default: auto, detected from ``data``)"""
+    """the dataparser config: a subcommand after the method's options (default: auto, detected from its ``data``, the
+    scene: the one field that holds the scene path; ``kc-train ... --data SCENE`` sets it)"""
     eval_split: Literal["test", "val", "train"] = "test"
     """split evaluated during and after training"""
 
-    def given_dataparser(self) -> DataParserConfig:
-        """The dataparser config with ``data`` handed to it (``auto`` not yet detected): a new config, this one is
-        left as the user wrote it."""
-        if self.data is None:
-            return self.dataparser
-        return dataclasses.replace(self.dataparser, data=Path(self.data))
+    @property
+    def scene(self) -> Path:
+        """The scene the dataparser reads (its ``data``)."""
+        return Path(self.dataparser.data)
+
+    def set_scene(self, data: Path | str) -> None:
+        """Read the scene at ``data`` (a folder, or 'demo'): sets the dataparser's ``data``."""
+        self.dataparser = dataclasses.replace(self.dataparser, data=Path(data))
 
     def resolve_dataparser(self) -> DataParserConfig:
-        """The concrete dataparser config to use: :meth:`given_dataparser`, with ``auto`` detected from the scene.
+        """The concrete dataparser config to use: the given one, with ``auto`` detected from the scene.
 
         Returns a new config; this one is left as the user wrote it.
         """
-        parser_config = self.given_dataparser()
-        if self.data is None and isinstance(parser_config, AutoDataParserConfig) and parser_config.data == Path("."):
-            raise DataParserError("no scene given: pass --data PATH (a scene folder, or 'demo' for the demo scene)")
-        if isinstance(parser_config, AutoDataParserConfig):
-            parser_config = parser_config.resolve()
-        return parser_config
+        if isinstance(self.dataparser, AutoDataParserConfig):
+            return self.dataparser.resolve()
+        return dataclasses.replace(self.dataparser)
+
+    @classmethod
+    def upgrade_fields(cls, fields: dict[str, Any]) -> dict[str, Any]:
+        """A ``config.yml`` of an earlier version had a ``data`` field here (always empty in the files runs wrote):
+        the scene is the dataparser's ``data``."""
+        data = fields.pop("data", None)
+        if data is not None and "dataparser" in fields:
+            fields["dataparser"] = dataclasses.replace(fields["dataparser"], data=Path(data))
+        return fields
 
     def setup(self, seed: int = 42, dataparser: DataParserConfig | None = None) -> DataManager:
         """The :class:`DataManager`; ``dataparser`` is the resolved dataparser config when the caller has it (a
@@ -121,15 +129,9 @@ class DataManager:
         return {"rng": self._rng.getstate(), "unseen": list(self._unseen)}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self._rng.setstate(_as_random_state(state["rng"]))
+        self._rng.setstate(as_random_state(state["rng"]))
         self._unseen = list(state["unseen"])
 
     def save_dataparser_transform(self, path: Path) -> None:
         """``dataparser_transforms.json`` as nerfstudio writes it: ``transform`` [3, 4] and ``scale``."""
         write_dataparser_transforms(path, self.train_outputs)
-
-
-def _as_random_state(state: Any) -> tuple:
-    """python's random state after a round trip through a checkpoint (lists instead of tuples)."""
-    version, internal, gauss = state
-    return (version, tuple(internal), gauss)

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from kc_splatfacto.model.splatfacto import scale_steps
 from kc_splatfacto.settings import integer, real, setting
 
 ADAM_EPS = 1e-15
@@ -61,8 +62,8 @@ class ExponentialDecaySchedulerConfig:
         if steps_scale <= 0:
             raise ValueError(f"steps_scale must be > 0, got {steps_scale}")
         nominal = self.max_steps if self.max_steps is not None else SPLATFACTO_SCHEDULE_STEPS
-        steps = max(1, int(round(nominal * steps_scale)))
-        warmup = int(round(self.warmup_steps * steps_scale))
+        steps = scale_steps(nominal, steps_scale)
+        warmup = scale_steps(self.warmup_steps, steps_scale, at_least=0)
         return torch.optim.lr_scheduler.LambdaLR(
             optimizer, ExponentialDecay(optimizer.defaults["lr"], self.lr_final, steps, warmup, self.lr_pre_warmup)
         )

@@ -92,12 +92,12 @@ def check_writable_folder(folder: Path, what: str) -> None:
 
 def comparable_dataparser(config: TrainerConfig) -> DataParserConfig:
     """The dataparser config ``config`` trains with, for comparing two runs: resolved (``auto`` detected), or as given
-    when its scene cannot be read (its ``data`` handed over; setup says what is wrong with the scene)."""
+    when its scene cannot be read (setup says what is wrong with the scene)."""
     datamanager = config.pipeline.datamanager
     try:
         return datamanager.resolve_dataparser()
     except (ValueError, OSError):
-        return datamanager.given_dataparser()
+        return datamanager.dataparser
 
 
 def scene_of(parser: DataParserConfig | None) -> str | None:
@@ -138,10 +138,10 @@ def differences(stored: TrainerConfig, current: TrainerConfig, parser_settings: 
 #: other field (model, optimizers, dataparser settings, seed) must equal the stored run's, or config.yml would lie
 #: about the steps already taken
 RESUMABLE_FIELDS = (
-    "method_name", "experiment_name", "output_dir", "timestamp", "data", "max_num_iterations", "steps_per_save",
+    "method_name", "experiment_name", "output_dir", "timestamp", "max_num_iterations", "steps_per_save",
     "steps_per_eval_all_images", "eval_at_steps", "final_lpips_nets", "eval_lpips_nets", "save_only_latest_checkpoint", "load_dir",
     "load_step", "resume_from_other_run", "max_consecutive_bad_steps", "machine.device", "logging",
-    "pipeline.datamanager.data", "pipeline.datamanager.dataparser", "pipeline.datamanager.eval_split",
+    "pipeline.datamanager.dataparser", "pipeline.datamanager.eval_split",
     "pipeline.model.rasterizer",
 )
 #: dataparser fields that say where, not what: compared as the scene (data) or not at all (cache_dir)

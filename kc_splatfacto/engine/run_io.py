@@ -80,7 +80,7 @@ def load_run(config_path: Path | str, step: int | None = None, device: str | tor
     run_dir = config_path.parent
     checkpoint_path = find_checkpoint(run_dir / CHECKPOINT_DIR, step)
     datamanager_config = config.pipeline.datamanager
-    check_stored_scene(datamanager_config.given_dataparser(), config_path)
+    check_stored_scene(datamanager_config.dataparser, config_path)
     dataparser = datamanager_config.resolve_dataparser()  # recorded resolved: a copy with the stored scene, no detection
     pipeline = config.pipeline.setup(device=device, seed=config.machine.seed, dataparser=dataparser)  # as in training
     checkpoint = load_checkpoint(checkpoint_path, map_location=device)

@@ -37,7 +37,13 @@ import torch
 from kc_splatfacto.data.base import DataParserConfig
 from kc_splatfacto.engine.base_config import LoggingConfig, MachineConfig, ViewerConfig
 from kc_splatfacto.engine.callbacks import RecordSink, TrainingCallback, TrainingCallbackLocation, run_callbacks
-from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, RUN_IDENTITY_KEY, run_identity, save_checkpoint
+from kc_splatfacto.engine.checkpoints import (
+    CHECKPOINT_DIR,
+    RUN_IDENTITY_KEY,
+    as_random_state,
+    run_identity,
+    save_checkpoint,
+)
 from kc_splatfacto.engine.config_file import save_config
 from kc_splatfacto.engine.evaluation import FINAL_LPIPS_NETS
 from kc_splatfacto.engine.gradient_shares import gradient_shares
@@ -84,8 +90,6 @@ class TrainerConfig:
     """root of the run folders"""
     timestamp: str = setting("{timestamp}", path_component())
     """run folder component; '{timestamp}' is replaced by the start time"""
-    data: Path | None = None
-    """the scene: alias for --pipeline.datamanager.data (folded into it when the trainer is built)"""
     max_num_iterations: int = setting(30000, integer(1))
     """number of optimization steps"""
     steps_per_save: int = setting(2000, integer(1))
@@ -114,11 +118,14 @@ class TrainerConfig:
     logging: LoggingConfig = field(default_factory=LoggingConfig)
     viewer: ViewerConfig = field(default_factory=ViewerConfig)
 
-    def resolve_aliases(self) -> None:
-        """Fold ``--data`` into the data manager config."""
-        if self.data is not None:
-            self.pipeline.datamanager.data = self.data
-            self.data = None
+    @classmethod
+    def upgrade_fields(cls, fields: dict[str, Any]) -> dict[str, Any]:
+        """A ``config.yml`` of an earlier version had a ``data`` field here (the ``--data`` alias, always empty in the
+        files runs wrote): the scene is the dataparser's ``data``."""
+        data = fields.pop("data", None)
+        if data is not None and "pipeline" in fields:
+            fields["pipeline"].datamanager.set_scene(data)
+        return fields
 
     def base_dir(self, scene: Path) -> Path:
         """``output_dir/experiment/method/timestamp``, with '{timestamp}' filled in; the experiment defaults to the
@@ -180,10 +187,9 @@ class Trainer:
     """Trains ``config.pipeline.model`` on ``config.pipeline.datamanager``'s scene."""
 
     def __init__(self, config: TrainerConfig):
-        # the trainer fills in what it resolves (the --data alias, the timestamp) on its own copy: the caller's
-        # config stays as given, and config.yml records the resolved one
+        # the trainer fills in what it resolves (the timestamp) on its own copy: the caller's config stays as given,
+        # and config.yml records the resolved one
         config = copy.deepcopy(config)
-        config.resolve_aliases()
         validate_config(config)  # once per run, before anything is resolved, loaded or written
         self.config = config
         self.device = config.machine.resolve_device()
@@ -333,8 +339,7 @@ class Trainer:
         if rng.get("cuda") is not None and torch.cuda.is_available():
             torch.cuda.set_rng_state_all([s.cpu() for s in rng["cuda"]])
         np.random.set_state(rng["numpy"])
-        version, internal, gauss = rng["python"]
-        random.setstate((version, tuple(internal), gauss))
+        random.setstate(as_random_state(rng["python"]))
         self.start_step = int(ckpt["step"])
         self._elapsed_offset = float(ckpt.get("elapsed_s", 0.0))
         self._train_s = float(ckpt.get("train_s", 0.0))
@@ -562,10 +567,7 @@ class Trainer:
 def recorded_config(config: TrainerConfig, dataparser_config: DataParserConfig) -> TrainerConfig:
     """What ``config.yml`` records: the user's config with the dataparser it resolved to (so the run can be rebuilt
     whatever the detection would say later), its scene paths made absolute (so kc-eval / kc-render work from any
-    folder) and held there alone (``pipeline.datamanager.data`` and ``data`` left empty), as a copy: the user's config
-    object is left as given."""
+    folder), as a copy: the user's config object is left as given."""
     recorded = copy.deepcopy(config)
-    recorded.data = None
-    recorded.pipeline.datamanager.data = None
     recorded.pipeline.datamanager.dataparser = recorded_dataparser(copy.deepcopy(dataparser_config))
     return recorded

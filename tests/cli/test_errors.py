@@ -144,8 +144,7 @@ def test_kc_bench_refuses_a_zero_budget(tmp_path, capsys):
 
 def castle_config(scene, output_dir, iterations=2):
     config = tiny_demo_config("splatfacto", output_dir, iterations=iterations)
-    config.pipeline.datamanager.dataparser = AutoDataParserConfig(downscale_factor=8)
-    config.pipeline.datamanager.data = scene
+    config.pipeline.datamanager.dataparser = AutoDataParserConfig(data=scene, downscale_factor=8)
     return config
 
 
@@ -166,7 +165,6 @@ def test_kc_eval_works_from_another_working_directory(castle_p30, tmp_path, monk
     old_style = load_config(config_yml)
     assert old_style.pipeline.datamanager.dataparser.data == tmp_path / "work" / "scene"  # stored absolute
     old_style.pipeline.datamanager.dataparser.data = Path("scene")
-    old_style.pipeline.datamanager.data = Path("scene")
     save_config(old_style, config_yml)
     assert kc_eval.entrypoint(["--load-config", str(config_yml), "--output-path", str(out)]) == 2
     assert "stores the scene as the relative path 'scene'" in one_error_line(capsys, "kc-eval")

@@ -97,8 +97,7 @@ def test_dotted_overrides_reach_the_config():
     assert config.pipeline.datamanager.dataparser.downscale_factor == 4
     assert config.eval_at_steps == (0, 10, 100)
     assert config.machine.seed == 3 and config.optimizers.means.optimizer.lr == 2e-4
-    config.resolve_aliases()
-    assert str(config.pipeline.datamanager.data) == "demo"
+    assert str(config.pipeline.datamanager.dataparser.data) == "demo"  # --data: the dataparser's field
     # the registered defaults were not mutated by parsing
     assert discover_methods()["kc-splatfacto"].config.max_num_iterations == 30000
 
@@ -112,13 +111,11 @@ def test_dataparser_is_a_subcommand_with_its_own_options(castle_p30):
     parser = config.pipeline.datamanager.dataparser
     assert type(parser) is ColmapDataParserConfig and parser.downscale_factor == 4 and parser.eval_mode == "all"
     assert config.pipeline.model.frequency.kc_weight == 1e-4
-    config.resolve_aliases()
     resolved = config.pipeline.datamanager.resolve_dataparser()
     assert resolved.data == castle_p30 and resolved.eval_mode == "all"
-    assert config.pipeline.datamanager.dataparser.data != castle_p30  # the user's config is left as given
+    assert resolved is not parser  # a copy: the user's config is left as given
     # no subcommand: detected, with the common options of `auto` handed on
     auto = parse_config(["kc-splatfacto", "--data", str(castle_p30), "auto", "--downscale-factor", "2"])
-    auto.resolve_aliases()
     detected = auto.pipeline.datamanager.resolve_dataparser()
     assert type(detected) is Spars3rDataParserConfig and detected.downscale_factor == 2
     with pytest.raises(SystemExit):  # a Literal choice field refuses other values

@@ -65,8 +65,8 @@ def test_unwritable_output_folder_is_refused_before_the_data_loads(tmp_path):
     blocker = tmp_path / "a-file"
     blocker.write_text("not a folder")
     config = tiny_demo_config("splatfacto", blocker / "outputs", iterations=2)
-    config.pipeline.datamanager.dataparser = AutoDataParserConfig()
-    config.pipeline.datamanager.data = tmp_path / "no-such-scene"  # would fail first if the data loaded first
+    config.pipeline.datamanager.dataparser = AutoDataParserConfig(data=tmp_path / "no-such-scene")  # would fail first
+    # if the data loaded first
     with pytest.raises(UserError, match=f"--output-dir {blocker / 'outputs'} is not a writable folder"):
         Trainer(config).train()
 
@@ -312,31 +312,44 @@ def test_a_run_records_its_scene_once_and_resolves_it_once(tmp_path, monkeypatch
     resolve = DataManagerConfig.resolve_dataparser
     monkeypatch.setattr(DataManagerConfig, "resolve_dataparser", lambda self: calls.append(1) or resolve(self))
     config = tiny_demo_config("splatfacto", tmp_path, iterations=1)
-    config.pipeline.datamanager.data = "demo"
+    config.pipeline.datamanager.set_scene("demo")
     trainer = Trainer(config)
     run_dir = trainer.train()
     assert len(calls) == 1
     assert trainer.datamanager.dataparser_config is trainer.dataparser
     recorded = load_config(run_dir / "config.yml")
-    assert recorded.data is None and recorded.pipeline.datamanager.data is None
     assert str(recorded.pipeline.datamanager.dataparser.data) == "demo"
 
 
-def test_resume_of_a_run_recorded_with_the_scene_in_every_field(finished_run, tmp_path):
-    """Earlier code recorded the scene in the data manager's field too: such a run is still the same run."""
-    from kc_splatfacto.engine.config import save_config
+def _with_old_scene_fields(config_yml: Path, trainer_data: str, datamanager_data: str) -> str:
+    """The config.yml text as earlier versions wrote it: a ``data`` field in the trainer's and the data manager's
+    mappings (the --data alias and the data manager's copy of the scene)."""
+    lines = config_yml.read_text().splitlines()
+    out = []
+    for line in lines:
+        out.append(line)
+        if line.startswith("!!python/object:kc_splatfacto.engine.trainer.TrainerConfig"):
+            out.append(f"data: {trainer_data}")
+        if line.strip().startswith("datamanager: !!python/object:"):
+            out.append(f"    data: {datamanager_data}")
+    assert len(out) == len(lines) + 2, "the dump's layout changed: this test's edit found no place"
+    return "\n".join(out) + "\n"
+
+
+def test_a_run_recorded_with_the_scene_in_the_fields_of_earlier_versions_is_the_same_run(finished_run, tmp_path):
+    """Earlier versions held the scene in three fields (the trainer's --data alias, the data manager's, the
+    dataparser's); their config.yml files read back with the scene in the dataparser's alone, the same run."""
     from kc_splatfacto.engine.run_guard import differences, setting_differences
 
     stored = load_config(finished_run / "config.yml")
-    old_style = load_config(finished_run / "config.yml")
-    old_style.pipeline.datamanager.data = old_style.pipeline.datamanager.dataparser.data
-    save_config(old_style, tmp_path / "config.yml")
+    (tmp_path / "config.yml").write_text(_with_old_scene_fields(finished_run / "config.yml", "null", "null"))
     old_style = load_config(tmp_path / "config.yml")
     assert differences(old_style, stored, parser_settings=True) == []
     assert setting_differences(old_style, stored) == []
-    other = load_config(finished_run / "config.yml")
-    other.pipeline.datamanager.data = tmp_path  # another scene, given the way --data gives it
-    assert differences(old_style, other) == [f"scene demo vs {tmp_path.resolve()}"]
+    (tmp_path / "config.yml").write_text(_with_old_scene_fields(finished_run / "config.yml", "null", str(tmp_path)))
+    moved = load_config(tmp_path / "config.yml")  # a scene in the data manager's field: the dataparser's now
+    assert moved.pipeline.datamanager.dataparser.data == tmp_path
+    assert differences(stored, moved) == [f"scene demo vs {tmp_path.resolve()}"]
 
 
 # ------------------------------------------------------------------------------------------------ SIGTERM
