@@ -16,7 +16,7 @@ def run_export(load_config: Path, output_path: Path, step: int | None = None):
     load_config = existing_run_config("kc-export", load_config)
     check_output_path(output_path, "--output-path")
     loaded = load_run(load_config, step=step, device="cpu")
-    params = {name: value.detach() for name, value in loaded.model.gauss_params.items()}
+    params = loaded.model.gaussian_state()
     try:
         return export_ply(output_path, params)
     except ValueError as exc:  # e.g. every Gaussian non-finite: the run, not the code, is the problem

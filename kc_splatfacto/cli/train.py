@@ -47,11 +47,13 @@ DESCRIPTION = "Train a Gaussian-splatting method (KC-3DGS or Splatfacto) on a sc
 
 
 def parse_config(argv: list[str]):
-    """The TrainerConfig a command line describes (tyro subcommands, one per discovered method)."""
+    """The TrainerConfig a command line describes (tyro subcommands, one per discovered method; ``--data SCENE``
+    among the method's options is the dataparser's ``data``)."""
     methods = discover_methods()
     if not methods:
         raise SystemExit("kc-train: no methods registered (is kc-splatfacto installed? `pip install -e .`)")
     install_dataparser_subcommands()
+    argv = move_scene_flag(argv, dataparser_flags())
     defaults = {name: copy.deepcopy(spec.config) for name, spec in methods.items()}
     descriptions = {name: spec.description for name, spec in methods.items()}
     union = _markers(tyro.extras.subcommand_type_from_defaults(defaults, descriptions))
@@ -98,10 +100,6 @@ def parse_command_line(argv: list[str]):
         print(short_help(method, methods[method].description, methods[method].config))
         raise SystemExit(0)
     argv = ["--help" if a == HELP_ALL_FLAG else a for a in argv]
-    wants_help = any(a in HELP_FLAGS for a in argv)
-    if method is not None and not wants_help and not any(a == SCENE_FLAG or a.startswith(SCENE_FLAG + "=") for a in argv):
-        raise UserError("no scene given: pass --data PATH (a scene folder, or 'demo' for the demo scene)")
-    argv = move_scene_flag(argv, parsers)
     valid = [SCENE_FLAG] + ([f.name for f in config_flags(methods[method].config)] if method else [])
     valid += [f.name for flags in parsers.values() for f in flags] + list(HELP_FLAGS)
     with tyro_errors_as_one_line(valid, [*methods, *parsers], "kc-train"):
@@ -130,6 +128,8 @@ def main(argv: list[str]) -> int:
     if not argv:
         argv = ["--help"]
     config = parse_command_line(expand_bare_flags(argv))
+    if not any(a == SCENE_FLAG or a.startswith(SCENE_FLAG + "=") for a in argv):
+        raise UserError("no scene given: pass --data PATH (a scene folder, or 'demo' for the demo scene)")
 
     trainer = config.setup()  # every value checked, with its dotted name, before the device, scene or run folder
     viewer = attach_viewer(trainer) if config.viewer.enabled else None

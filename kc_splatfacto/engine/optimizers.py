@@ -102,7 +102,7 @@ def _group(lr: float, scheduler: ExponentialDecaySchedulerConfig | None = None) 
 
 @dataclass
 class OptimizersConfig:
-    """Splatfacto 1.1.5's parameter groups; field names equal the keys of ``model.gauss_params``."""
+    """Splatfacto 1.1.5's parameter groups; field names equal the model's parameter group names (``model.parameter_groups()``)."""
 
     means: ParamGroupConfig = field(
         default_factory=lambda: _group(

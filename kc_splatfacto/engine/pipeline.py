@@ -104,7 +104,7 @@ class Pipeline:
     def state_dict(self) -> dict[str, Any]:
         """The Gaussians (``model``), the density-control statistics and the training-image order."""
         return {
-            "model": {k: v.detach().clone() for k, v in self.model.gauss_params.items()},
+            "model": self.model.gaussian_state(),
             "strategy_state": dict(self.model.strategy_state),
             "datamanager": self.datamanager.state_dict(),
         }

@@ -322,6 +322,11 @@ class SplatfactoModel(torch.nn.Module):
         step. Density control replaces a group's tensor, so ask again after it rather than keeping these."""
         return dict(self.gauss_params.items())
 
+    def gaussian_state(self) -> dict[str, torch.Tensor]:
+        """A detached copy of every Gaussian parameter by name (``means`` [N, 3], ... ``features_rest`` [N, K, 3]):
+        what a checkpoint or a PLY export holds; :meth:`load_gauss_params` takes it back."""
+        return {name: param.detach().clone() for name, param in self.gauss_params.items()}
+
     def gradient_peaks(self) -> tuple[list[str], torch.Tensor]:
         """(names, [G] max |gradient| of each group that has a gradient; NaN where one is NaN), on the device: read
         once with the rest of the step's verdict (one host synchronisation)."""

@@ -52,12 +52,11 @@ def resume_config(run_dir: Path, tmp_path: Path, method: str = "kc-splatfacto", 
 
 
 @pytest.mark.parametrize("iterations", [0, -5])
-def test_non_positive_iterations_are_refused_before_setup(tmp_path, iterations):
+def test_non_positive_iterations_are_refused_when_the_trainer_is_built(tmp_path, iterations):
     config = tiny_demo_config("splatfacto", tmp_path, iterations=iterations)
-    trainer = Trainer(config)
-    with pytest.raises(UserError, match=f"--max-num-iterations must be at least 1, got {iterations}"):
-        trainer.train()
-    assert trainer.datamanager is None  # nothing loaded
+    with pytest.raises(UserError, match=f"max_num_iterations = {iterations} is not allowed: --max-num-iterations must "
+                                        "be at least 1"):
+        Trainer(config)  # validated once, before anything is resolved, loaded or written
     assert not (tmp_path / "tiny-demo").exists()  # no run folder without a checkpoint
 
 
