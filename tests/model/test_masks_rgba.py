@@ -139,7 +139,7 @@ def test_both_splits_come_from_one_parse_of_the_model(monkeypatch, castle_p30):
         return real(*args, **kwargs)
 
     monkeypatch.setattr(spars3r, "read_colmap_model", counting)
-    datamanager = DataManagerConfig(data=castle_p30, dataparser=AutoDataParserConfig(downscale_factor=4)).setup()
+    datamanager = DataManagerConfig(dataparser=AutoDataParserConfig(data=castle_p30, downscale_factor=4)).setup()
     assert len(calls) == 1
     assert len(datamanager.train_dataset) == 12 and len(datamanager.eval_dataset) == 12
     names = {Path(p).name for p in datamanager.train_dataset.image_filenames}

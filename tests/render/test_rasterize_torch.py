@@ -301,9 +301,9 @@ def test_backend_resolution_with_and_without_gsplat(monkeypatch):
     assert resolve_rasterizer("auto", cpu) == "cpu"
 
 
-def test_backend_errors_are_clear():
+def test_rasterizer_errors_are_clear():
     args = _scene_for_modes()
-    with pytest.raises(ValueError, match="backend must be one of"):
+    with pytest.raises(ValueError, match="rasterizer must be one of"):
         rasterization(*args, rasterizer="opengl")
     gsplat_installed = True
     try:
