@@ -1,4 +1,5 @@
-"""One wrapper for every command-line entry point: user errors as one line and exit code 2, bugs with a traceback.
+"""One wrapper for every command-line entry point: user errors as one line and exit code 2, Ctrl-C as one line and
+exit code 130, bugs with a traceback.
 
 ``--debug`` (anywhere on the command line) or ``KC_DEBUG=1`` shows the traceback of a user error too.
 """
@@ -16,11 +17,12 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from kc_splatfacto.engine.run_guard import check_writable_folder
-from kc_splatfacto.errors import UserError
+from kc_splatfacto.errors import Interrupted, UserError
 
 DEBUG_FLAG = "--debug"
 DEBUG_ENV = "KC_DEBUG"
 USER_ERROR_EXIT = 2
+INTERRUPTED_EXIT = 130  # 128 + SIGINT, what a shell reports for a command Ctrl-C ended
 FULL_DISK_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
 
 
@@ -29,7 +31,8 @@ def debug_requested(argv: Sequence[str]) -> bool:
 
 
 def run_cli(prog: str, main: Callable[[list[str]], int], argv: Sequence[str] | None = None) -> int:
-    """``main(argv without --debug)``; a :class:`UserError` becomes ``prog: error: message`` on stderr and exit 2."""
+    """``main(argv without --debug)``; a :class:`UserError` becomes ``prog: error: message`` on stderr and exit 2, a
+    Ctrl-C ``prog: interrupted (Ctrl-C)...`` and exit 130 (an :class:`Interrupted` adds what is left)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = debug_requested(argv)
     argv = [a for a in argv if a != DEBUG_FLAG]
@@ -47,6 +50,12 @@ def run_cli(prog: str, main: Callable[[list[str]], int], argv: Sequence[str] | N
             message = message[len(prefix):]
         print(f"{prog}: error: {message}", file=sys.stderr)
         return USER_ERROR_EXIT
+    except KeyboardInterrupt as exc:
+        if debug:
+            raise
+        detail = " ".join(str(exc).split()) if isinstance(exc, Interrupted) else ""
+        print(f"{prog}: interrupted (Ctrl-C){': ' + detail if detail else ''}", file=sys.stderr, flush=True)
+        return INTERRUPTED_EXIT
     except OSError as exc:
         # a full disk or quota is the machine's state, not a bug: one line naming the file (writes are atomic, so
         # nothing partial is left); any other OSError keeps its traceback

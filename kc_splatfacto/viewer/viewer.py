@@ -29,7 +29,7 @@ from kc_splatfacto.atomic import atomic_write_text
 from kc_splatfacto.data.outputs import Cameras
 from kc_splatfacto.engine.base_config import ViewerConfig
 from kc_splatfacto.engine.callbacks import RecordSink, TrainingCallback, TrainingCallbackLocation
-from kc_splatfacto.errors import UserError
+from kc_splatfacto.errors import UserError, import_optional
 from kc_splatfacto.viewer.cameras import (
     FRUSTUM_FALLBACK_SCALE,
     camera_from_pose,
@@ -101,11 +101,7 @@ def start_server(viser, host: str, port: int, timeout: float = SERVER_START_TIME
 
 
 def import_viser():
-    try:
-        import viser
-    except ImportError as exc:
-        raise UserError(f"the viewer needs the viser package, which does not import ({exc}): {INSTALL_HINT}") from exc
-    return viser
+    return import_optional("viser", "viser", "the viewer", INSTALL_HINT)
 
 
 def render_rgb(model, camera: Cameras) -> np.ndarray:
