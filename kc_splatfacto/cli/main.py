@@ -146,9 +146,33 @@ def existing_run_config(prog: str, load_config) -> Path:
     return load_config
 
 
-def check_output_path(path, what: str) -> None:
+def path_flag(flag: str, value, default=None) -> str:
+    """How a message names a path option: ``--flag VALUE``, or ``--flag's default VALUE`` when it is the default (a
+    user who never typed the flag should not read it as theirs)."""
+    is_default = default is not None and value is not None and Path(value) == Path(default)
+    return f"{flag}'s default {value}" if is_default else f"{flag} {value}"
+
+
+def check_folder_can_hold(folder, named: str, flag: str) -> None:
+    """``folder`` (``named`` in messages, set by ``flag``) must be a folder or creatable as one, by this user: checked
+    before any work, without creating it (an error later would leave an empty folder behind)."""
+    folder = Path(folder).absolute()
+    existing = next(p for p in (folder, *folder.parents) if p.exists())
+    if existing == folder and not folder.is_dir():
+        raise UserError(f"{named} is a file, not a folder: choose a folder with {flag}")
+    if not existing.is_dir():
+        raise UserError(f"{named} cannot be created: {existing} is a file, not a folder; choose another with {flag}")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise UserError(f"{named} cannot be {'written' if existing == folder else 'created'}: {existing} is not "
+                        f"writable by you; choose another with {flag}")
+
+
+def check_output_path(path, what: str, default=None) -> None:
     """The folder of an output file must be writable, and the path not a folder: checked before the (slow) run
-    loading."""
+    loading. ``default``: the flag's default, named as such."""
+    named = path_flag(what, path, default)
     if Path(path).is_dir():
-        raise UserError(f"{what} {path} is a folder: pass the path of the file to write (it may be inside that folder)")
-    check_writable_folder(Path(path).absolute().parent, f"the folder of {what}")
+        raise UserError(f"{named} is a folder: pass {what} with the path of the file to write (it may be inside that "
+                        "folder)")
+    where = f"the folder of {what}" if named == f"{what} {path}" else f"the folder of {named}:"
+    check_writable_folder(Path(path).absolute().parent, where, f"pass {what} with a path in a folder you can write to")
