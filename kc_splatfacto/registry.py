@@ -17,6 +17,7 @@ from __future__ import annotations
 import importlib
 import os
 import sys
+import warnings
 from dataclasses import dataclass
 from importlib.metadata import entry_points
 from pathlib import Path
@@ -91,28 +92,43 @@ def check_own_methods_package() -> None:
 
 def _discover(group: str, env_var: str, expected: type) -> dict[str, Any]:
     found: dict[str, Any] = {}
+    origins: dict[str, str] = {}  # what each name stands for, as a warning names it
+    kind = "method" if group == METHOD_GROUP else "dataparser"
     for ep in entry_points(group=group):
         try:
             spec = ep.load()
         except Exception as exc:  # a broken third-party plugin must name itself
             raise RegistryError(f"entry point '{ep.name}' in group '{group}' ({ep.value}) failed to load: {exc}") from exc
-        if ep.value.split(".")[0].split(":")[0] == OWN_METHODS_PACKAGE:
+        own = ep.value.split(".")[0].split(":")[0] == OWN_METHODS_PACKAGE
+        if own:
             check_own_methods_package()
         if not isinstance(spec, expected):
             raise RegistryError(
                 f"entry point '{ep.name}' in group '{group}' ({ep.value}) is a {type(spec).__name__}, "
                 f"expected a {expected.__name__}"
             )
+        _warn_if_replaced(ep.name, origins, f"the entry point {ep.value}")
         found[ep.name] = spec
+        origins[ep.name] = f"the {'built-in ' if own else ''}{kind} '{ep.name}' ({ep.value})"
     for item in filter(None, (s.strip() for s in os.environ.get(env_var, "").split(","))):
         name, sep, target = item.partition("=")
         if not sep:
             raise RegistryError(f"{env_var}: '{item}' must have the form name=module:attribute")
-        spec = _load_object(name.strip(), target.strip(), env_var)
+        name, target = name.strip(), target.strip()
+        spec = _load_object(name, target, env_var)
         if not isinstance(spec, expected):
             raise RegistryError(f"{env_var}: '{item}' is a {type(spec).__name__}, expected a {expected.__name__}")
-        found[name.strip()] = spec
+        _warn_if_replaced(name, origins, f"{env_var}'s {name}={target}")
+        found[name] = spec
+        origins[name] = f"the {kind} '{name}' of {env_var} ({target})"
     return dict(sorted(found.items()))
+
+
+def _warn_if_replaced(name: str, origins: dict[str, str], new: str) -> None:
+    """One warning when ``name`` is registered already: the later registration wins, which a user must know (a
+    study of 'splatfacto' would otherwise train another method under the built-in's name without a word)."""
+    if name in origins:
+        warnings.warn(f"{new} replaces {origins[name]}; give it another name to keep both", stacklevel=3)
 
 
 def discover_methods() -> dict[str, MethodSpecification]:

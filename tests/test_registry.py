@@ -39,6 +39,26 @@ def test_env_var_malformed(monkeypatch):
         discover_methods()
 
 
+def test_a_method_that_replaces_a_registered_name_is_said_once(monkeypatch):
+    """Issue 37: the environment variable's 'splatfacto' replaces the built-in one (the later registration wins) with
+    one warning naming both; a name given twice in the variable likewise."""
+    import warnings
+
+    monkeypatch.setenv(registry.METHOD_ENV, "splatfacto=tests.test_registry:dummy_method,"
+                                            "twice=tests.test_registry:dummy_method,twice=method_configs.splatfacto_configs:kc_splatfacto")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("default")
+        for _ in range(3):  # discovery runs many times in a command: the warning is still said once
+            methods = discover_methods()
+    assert methods["splatfacto"] is dummy_method and methods["twice"].config.method_name == "kc-splatfacto"
+    assert sorted(str(w.message) for w in caught) == [
+        f"{registry.METHOD_ENV}'s splatfacto=tests.test_registry:dummy_method replaces the built-in method 'splatfacto' "
+        "(method_configs.splatfacto_configs:splatfacto); give it another name to keep both",
+        f"{registry.METHOD_ENV}'s twice=method_configs.splatfacto_configs:kc_splatfacto replaces the method 'twice' of "
+        f"{registry.METHOD_ENV} (tests.test_registry:dummy_method); give it another name to keep both",
+    ]
+
+
 def test_a_namesake_method_configs_package_is_refused(tmp_path, monkeypatch):
     """Another top-level ``method_configs`` earlier on sys.path (with a ``splatfacto_configs`` of its own) is named,
     not trained under this project's method names."""

@@ -37,6 +37,10 @@ PERSPECTIVE = "perspective"
 SPIRAL_ROTATIONS = 2
 SPIRAL_ZRATE = 0.5
 SPIRAL_RADIUS_PERCENTILE = 90
+#: the narrowest angle a pixel may span (radians): float32's relative resolution, since the rasterizer projects in
+#: float32; below it a projected point's rounding error is more than a pixel, and a fov small enough makes the focal
+#: length itself infinite (a traceback from the rasterizer, or a division by zero)
+MIN_PIXEL_ANGLE = float(np.finfo(np.float32).eps)
 
 
 class CameraPathError(UserError, ValueError):
@@ -176,6 +180,18 @@ def _number(value, what: str, path: Path, positive: bool = True) -> float:
     return float(value)
 
 
+def check_fov_renders(fov: float, height: float, what: str, path: Path) -> None:
+    """A :class:`CameraPathError` when a vertical field of view of ``fov`` degrees over ``height`` pixels gives
+    pixels narrower than :data:`MIN_PIXEL_ANGLE`."""
+    smallest = math.degrees(MIN_PIXEL_ANGLE * height)
+    if fov < smallest:
+        raise CameraPathError(
+            f"camera path {path}: {what} is {fov:g} degrees, too narrow to render {height:g} pixels high (a pixel would "
+            f"span {math.radians(fov) / height:.2g} rad, below the {MIN_PIXEL_ANGLE:.2g} rad float32 resolves): use a "
+            f"fov of at least {smallest:.2g} degrees"
+        )
+
+
 def read_camera_path(path: Path) -> CameraPath:
     """Cameras of a nerfstudio camera-path JSON (the module docstring's format and conversion)."""
     path = Path(path)
@@ -215,6 +231,7 @@ def read_camera_path(path: Path) -> CameraPath:
         if fov >= 180:
             raise CameraPathError(f"camera path {path}: camera_path[{i}].fov is {fov} degrees: a perspective "
                                   "camera's vertical field of view is below 180")
+        check_fov_renders(fov, height, f"camera_path[{i}].fov", path)
         c2w[i, :3, :3] = rotation @ GL_FROM_CV
         c2w[i, :3, 3] = matrix[:3, 3]
         focal = (height / 2.0) / math.tan(math.radians(fov) / 2.0)

@@ -47,7 +47,7 @@ from kc_splatfacto.analysis.along_training import write_along_training
 from kc_splatfacto.analysis.diagnostics import plot_kurtosis_gap_comparison
 from kc_splatfacto.analysis.report import eval_rows, plot_gradient_shares, write_report
 from kc_splatfacto.atomic import atomic_write_text
-from kc_splatfacto.cli.main import did_you_mean, run_cli
+from kc_splatfacto.cli.main import check_folder_can_hold, did_you_mean, path_flag, run_cli
 from kc_splatfacto.cli.train import override_config
 from kc_splatfacto.data.detect import AutoDataParserConfig
 from kc_splatfacto.engine.metrics_log import read_metrics
@@ -64,6 +64,8 @@ class BenchArgumentError(UserError, ValueError):
 
 DEFAULT_METHODS = ("splatfacto", "kc-splatfacto")
 DEFAULT_BASELINE = "splatfacto"
+#: the report folder when --output-dir is not given
+DEFAULT_OUTPUT_DIR = Path("bench")
 
 
 def log_spaced_steps(max_steps: int, num: int) -> tuple[int, ...]:
@@ -383,9 +385,10 @@ def check_bench_args(args: argparse.Namespace) -> None:
     among the methods, with a note when it is not)."""
     if args.max_num_iterations < 1:
         raise UserError(f"--max-num-iterations must be at least 1, got {args.max_num_iterations}")
-    for flag, folder in (("--output-dir", args.output_dir), ("--runs-dir", args.runs_dir)):
-        if folder is not None and Path(folder).exists() and not Path(folder).is_dir():
-            raise UserError(f"{flag} {folder} is a file, not a folder: choose a folder for the study")
+    for flag, folder, default in (("--output-dir", args.output_dir, DEFAULT_OUTPUT_DIR),
+                                  ("--runs-dir", args.runs_dir, None)):
+        if folder is not None:
+            check_folder_can_hold(folder, path_flag(flag, folder, default), flag)
     if args.num_evals < 1:
         raise UserError(f"--num-evals must be at least 1, got {args.num_evals}")
     for flag, values in (("--seeds", args.seeds), ("--methods", args.methods)):
@@ -444,7 +447,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "the machine barely moves), or wall clock")
     parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                         help="dotted config overrides applied to every run, e.g. pipeline.model.rasterizer=cpu")
-    parser.add_argument("--output-dir", type=Path, default=Path("bench"), help="report folder")
+    parser.add_argument("--output-dir", type=Path, default=DEFAULT_OUTPUT_DIR, help="report folder")
     parser.add_argument("--runs-dir", type=Path, default=None, help="run folders (default OUTPUT_DIR/runs)")
     parser.add_argument("--resume", action="store_true",
                         help="continue a stopped study: reuse finished runs, resume interrupted ones from their last "

@@ -112,7 +112,7 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--output-path", type=Path, default=Path("metrics.json"), help="where to write the JSON")
     parser.add_argument("--split", choices=("test", "train"), default="test")
     args = parser.parse_args(argv)
-    check_output_path(args.output_path, "--output-path")
+    check_output_path(args.output_path, "--output-path", parser.get_default("output_path"))
     payload = run_eval(args.load_config, args.output_path, args.step, args.split)
     r = payload["results"]
     lpips = "LPIPS n/a" if r["lpips"] is None else f"LPIPS({r['lpips_net']}) {r['lpips']:.4f}"

@@ -10,11 +10,13 @@ from kc_splatfacto.engine.run_io import load_run
 from kc_splatfacto.errors import UserError
 from kc_splatfacto.model.ply import export_ply
 
+DEFAULT_OUTPUT_PATH = Path("splat.ply")
+
 
 def run_export(load_config: Path, output_path: Path, step: int | None = None):
     """Load a run and write its Gaussians; returns :class:`kc_splatfacto.model.ply.PlyExportResult`."""
     load_config = existing_run_config("kc-export", load_config)
-    check_output_path(output_path, "--output-path")
+    check_output_path(output_path, "--output-path", DEFAULT_OUTPUT_PATH)
     loaded = load_run(load_config, step=step, device="cpu")
     params = loaded.model.gaussian_state()
     try:
@@ -31,7 +33,7 @@ def entrypoint(argv: list[str] | None = None) -> int:
 def main(argv: list[str]) -> int:
     parser = ArgumentParser(prog="kc-export", description="Export a run's Gaussians as a 3DGS PLY (SuperSplat, Inria viewers).")
     add_run_arguments(parser)
-    parser.add_argument("--output-path", type=Path, default=Path("splat.ply"), help="the .ply file to write")
+    parser.add_argument("--output-path", type=Path, default=DEFAULT_OUTPUT_PATH, help="the .ply file to write")
     args = parser.parse_args(argv)
     result = run_export(args.load_config, args.output_path, args.step)
     note = f", dropped {result.num_dropped} non-finite" if result.num_dropped else ""

@@ -1,4 +1,5 @@
-"""One wrapper for every command-line entry point: user errors as one line and exit code 2, bugs with a traceback.
+"""One wrapper for every command-line entry point: user errors as one line and exit code 2, Ctrl-C as one line and
+exit code 130, bugs with a traceback.
 
 ``--debug`` (anywhere on the command line) or ``KC_DEBUG=1`` shows the traceback of a user error too.
 """
@@ -16,11 +17,12 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from kc_splatfacto.engine.run_guard import check_writable_folder
-from kc_splatfacto.errors import UserError
+from kc_splatfacto.errors import Interrupted, UserError
 
 DEBUG_FLAG = "--debug"
 DEBUG_ENV = "KC_DEBUG"
 USER_ERROR_EXIT = 2
+INTERRUPTED_EXIT = 130  # 128 + SIGINT, what a shell reports for a command Ctrl-C ended
 FULL_DISK_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
 
 
@@ -29,7 +31,8 @@ def debug_requested(argv: Sequence[str]) -> bool:
 
 
 def run_cli(prog: str, main: Callable[[list[str]], int], argv: Sequence[str] | None = None) -> int:
-    """``main(argv without --debug)``; a :class:`UserError` becomes ``prog: error: message`` on stderr and exit 2."""
+    """``main(argv without --debug)``; a :class:`UserError` becomes ``prog: error: message`` on stderr and exit 2, a
+    Ctrl-C ``prog: interrupted (Ctrl-C)...`` and exit 130 (an :class:`Interrupted` adds what is left)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = debug_requested(argv)
     argv = [a for a in argv if a != DEBUG_FLAG]
@@ -47,6 +50,12 @@ def run_cli(prog: str, main: Callable[[list[str]], int], argv: Sequence[str] | N
             message = message[len(prefix):]
         print(f"{prog}: error: {message}", file=sys.stderr)
         return USER_ERROR_EXIT
+    except KeyboardInterrupt as exc:
+        if debug:
+            raise
+        detail = " ".join(str(exc).split()) if isinstance(exc, Interrupted) else ""
+        print(f"{prog}: interrupted (Ctrl-C){': ' + detail if detail else ''}", file=sys.stderr, flush=True)
+        return INTERRUPTED_EXIT
     except OSError as exc:
         # a full disk or quota is the machine's state, not a bug: one line naming the file (writes are atomic, so
         # nothing partial is left); any other OSError keeps its traceback
@@ -137,9 +146,33 @@ def existing_run_config(prog: str, load_config) -> Path:
     return load_config
 
 
-def check_output_path(path, what: str) -> None:
+def path_flag(flag: str, value, default=None) -> str:
+    """How a message names a path option: ``--flag VALUE``, or ``--flag's default VALUE`` when it is the default (a
+    user who never typed the flag should not read it as theirs)."""
+    is_default = default is not None and value is not None and Path(value) == Path(default)
+    return f"{flag}'s default {value}" if is_default else f"{flag} {value}"
+
+
+def check_folder_can_hold(folder, named: str, flag: str) -> None:
+    """``folder`` (``named`` in messages, set by ``flag``) must be a folder or creatable as one, by this user: checked
+    before any work, without creating it (an error later would leave an empty folder behind)."""
+    folder = Path(folder).absolute()
+    existing = next(p for p in (folder, *folder.parents) if p.exists())
+    if existing == folder and not folder.is_dir():
+        raise UserError(f"{named} is a file, not a folder: choose a folder with {flag}")
+    if not existing.is_dir():
+        raise UserError(f"{named} cannot be created: {existing} is a file, not a folder; choose another with {flag}")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise UserError(f"{named} cannot be {'written' if existing == folder else 'created'}: {existing} is not "
+                        f"writable by you; choose another with {flag}")
+
+
+def check_output_path(path, what: str, default=None) -> None:
     """The folder of an output file must be writable, and the path not a folder: checked before the (slow) run
-    loading."""
+    loading. ``default``: the flag's default, named as such."""
+    named = path_flag(what, path, default)
     if Path(path).is_dir():
-        raise UserError(f"{what} {path} is a folder: pass the path of the file to write (it may be inside that folder)")
-    check_writable_folder(Path(path).absolute().parent, f"the folder of {what}")
+        raise UserError(f"{named} is a folder: pass {what} with the path of the file to write (it may be inside that "
+                        "folder)")
+    where = f"the folder of {what}" if named == f"{what} {path}" else f"the folder of {named}:"
+    check_writable_folder(Path(path).absolute().parent, where, f"pass {what} with a path in a folder you can write to")

@@ -274,8 +274,12 @@ def run_render(
     if codec not in CODECS:
         raise UserError(f"kc-render: --codec must be one of {', '.join(CODECS)}, got {codec}")
     camera_path = read_camera_path(camera_path_filename) if video and camera_path_filename is not None else None
-    output_dir = Path(output_dir) if output_dir is not None else load_config.parent / DEFAULT_RENDER_DIR
-    check_writable_folder(output_dir, "--output-dir")
+    if output_dir is None:
+        output_dir = load_config.parent / DEFAULT_RENDER_DIR
+        check_writable_folder(output_dir, "--output-dir's default", "pass --output-dir with a folder you can write to")
+    else:
+        output_dir = Path(output_dir)
+        check_writable_folder(output_dir, "--output-dir")
     loaded = load_run(load_config, step=step, device="cpu")
     if hasattr(loaded.model, "eval"):
         loaded.model.eval()

@@ -36,7 +36,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from kc_splatfacto.data.images import IMAGE_EXTENSIONS
-from kc_splatfacto.errors import UserError
+from kc_splatfacto.errors import Interrupted, UserError
 
 #: COLMAP's image readers do not decode EXR; everything else in IMAGE_EXTENSIONS they do.
 SFM_IMAGE_EXTENSIONS = tuple(ext for ext in IMAGE_EXTENSIONS if ext != ".exr")
@@ -502,7 +502,7 @@ def publish_scene(staging: Path, scene: Path) -> None:
         for name in SCENE_PARTS:
             if (staging / name).exists():
                 (staging / name).replace(scene / name)
-    except OSError:
+    except BaseException:  # Ctrl-C too: the old parts would be deleted with the staging folder
         for name in SCENE_PARTS:
             if (replaced / name).exists() and not (scene / name).exists():
                 (replaced / name).replace(scene / name)
@@ -510,7 +510,27 @@ def publish_scene(staging: Path, scene: Path) -> None:
 
 
 def process_images(config: ProcessImagesConfig, progress: Callable[[str], None] = print) -> ProcessResult:
-    """Photos -> a COLMAP scene (see the module docstring); ``progress`` gets one line per stage and step."""
+    """Photos -> a COLMAP scene (see the module docstring); ``progress`` gets one line per stage and step.
+
+    A Ctrl-C at any stage leaves ``output_dir`` as it was (an :class:`~kc_splatfacto.errors.Interrupted` saying so)."""
+    scene = Path(config.output_dir)
+    had_scene = _holds_files(scene)
+    try:
+        return _process_images(config, progress)
+    except KeyboardInterrupt:
+        kept = " (the scene already there is as it was)" if had_scene else ""
+        raise Interrupted(f"nothing was written to --output-dir {scene}{kept}; run the same command to start "
+                          "again") from None
+
+
+def _holds_files(folder: Path) -> bool:
+    try:
+        return folder.is_dir() and any(folder.iterdir())
+    except OSError:  # unreadable: prepare_output says so
+        return False
+
+
+def _process_images(config: ProcessImagesConfig, progress: Callable[[str], None]) -> ProcessResult:
     photos = Path(config.data)
     scene = Path(config.output_dir)
     names = list_photos(photos)
@@ -526,14 +546,39 @@ def process_images(config: ProcessImagesConfig, progress: Callable[[str], None] 
         raise ProcessDataError(f"--max-image-size must be at least 64 pixels, got {config.max_image_size}")
     check_photos(photos, names)
     prepare_output(scene, photos, config.overwrite)
+    created = missing_folders(scene.parent)
     staging = staging_folder(scene)
+    published = False
     try:
         result = _process_into(staging, photos, names, config, progress)
         publish_scene(staging, scene)
+        published = True
     finally:  # also on an error or Ctrl-C: the old scene untouched, nothing half-written left behind
         shutil.rmtree(staging, ignore_errors=True)
+        if not published:
+            remove_empty_folders(created)
     result.scene = scene
     return result
+
+
+def missing_folders(folder: Path) -> list[Path]:
+    """``folder`` and those of its parents that do not exist yet, deepest first (what a ``mkdir(parents=True)``
+    would create)."""
+    missing = []
+    for candidate in (Path(folder), *Path(folder).parents):
+        if candidate.exists():
+            break
+        missing.append(candidate)
+    return missing
+
+
+def remove_empty_folders(folders: list[Path]) -> None:
+    """Remove ``folders`` (deepest first) that are empty: the ones a failed run created for nothing."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:  # not empty (someone else wrote there) or already gone: leave it
+            break
 
 
 def _process_into(scene: Path, photos: Path, names: list[str], config: ProcessImagesConfig,

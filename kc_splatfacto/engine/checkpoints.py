@@ -30,6 +30,16 @@ class CheckpointNotFoundError(CheckpointError, FileNotFoundError):
     """No checkpoint where one was asked for."""
 
 
+class CheckpointMismatchError(CheckpointError):
+    """A checkpoint whose run identity differs from the config's; ``recorded`` holds each differing config field
+    (dotted name) with the checkpoint's value, so a caller holding the config file can say whether the file lost
+    that line."""
+
+    def __init__(self, message: str, recorded: dict[str, Any]):
+        super().__init__(message)
+        self.recorded = recorded
+
+
 def checkpoint_step(path: Path) -> int:
     """The step of a checkpoint file named by :func:`checkpoint_name`."""
     match = CHECKPOINT_PATTERN.match(Path(path).name)
@@ -134,18 +144,21 @@ def check_checkpoint_fits(checkpoint: dict[str, Any], config: Any, path: Path, s
     expected = run_identity(config)
     if not same_method:
         expected.pop("method_name")
-    found = [f"{IDENTITY_FIELDS[key]} {recorded[key]!r} in the checkpoint vs {value!r} in the config"
-             for key, value in expected.items() if key in recorded and recorded[key] != value]
+    differing = {key: recorded[key] for key, value in expected.items() if key in recorded and recorded[key] != value}
+    found = [f"{IDENTITY_FIELDS[key]} {recorded[key]!r} in the checkpoint vs {expected[key]!r} in the config"
+             for key in differing]
     rest = checkpoint.get("model", {}).get("features_rest") if isinstance(checkpoint.get("model"), dict) else None
     if rest is not None and "sh_degree" not in recorded and getattr(rest, "ndim", 0) == 3:
         degree = expected["sh_degree"]
         if rest.shape[1] != (degree + 1) ** 2 - 1:
             found.append(f"features_rest holds {rest.shape[1]} SH coefficients per colour, pipeline.model.sh_degree {degree} has "
                          f"{(degree + 1) ** 2 - 1}")
+            differing["sh_degree"] = round((rest.shape[1] + 1) ** 0.5) - 1
     if found:
-        raise CheckpointError(
+        raise CheckpointMismatchError(
             f"checkpoint {path} was written by another run ({'; '.join(found)}): it does not fit this config; "
-            "pass the config.yml of the run that wrote it"
+            "pass the config.yml of the run that wrote it",
+            {IDENTITY_FIELDS[key]: value for key, value in differing.items()},
         )
 
 

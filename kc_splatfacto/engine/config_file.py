@@ -168,6 +168,53 @@ def save_config(config: Any, path: Path) -> None:
     atomic_write_text(path, yaml.dump(config, Dumper=yaml.Dumper, sort_keys=False))
 
 
+def missing_fields(path: Path | str, config: Any) -> list[str]:
+    """Dotted names of the fields of ``config`` (as read from ``path``) that the file has no line for: the reader
+    fills them with their defaults, so a line lost in an edit (or a field newer than the file) shows only here."""
+    node = yaml.compose(Path(path).read_text(encoding="utf-8"), Loader=ConfigLoader)
+    return _missing_in(node, config, "")
+
+
+def _missing_in(node: Any, value: Any, prefix: str) -> list[str]:
+    if not (dataclasses.is_dataclass(value) and not isinstance(value, type) and isinstance(node, yaml.MappingNode)):
+        return []
+    children = {key.value: child for key, child in node.value if isinstance(key, yaml.ScalarNode)}
+    found = []
+    for f in dataclasses.fields(value):
+        if not f.init:
+            continue
+        if f.name not in children:
+            found.append(f"{prefix}{f.name}")
+        else:
+            found += _missing_in(children[f.name], getattr(value, f.name), f"{prefix}{f.name}.")
+    return found
+
+
+def check_lines_kept(path: Path | str, config: Any, involved: dict[str, Any], trouble: str) -> None:
+    """A :class:`ConfigFileError` when ``path`` (read as ``config``) has no line for a field of ``involved`` (dotted
+    name: the value it should hold, or None when unknown): ``trouble`` (what went wrong) came from that field's
+    default, not from another run."""
+    lost = [name for name in missing_fields(path, config) if name in involved]
+    if not lost:
+        return
+    used = ", ".join(f"{name} (its default {_dotted(config, name)!r} was used)" for name in lost)
+    restore = "; ".join(_restore_line(name, involved[name]) for name in lost)
+    raise ConfigFileError(f"{path} is incomplete (edited by hand, or written by an older version?): it has no line for {used}, and so {trouble}: "
+                          f"{restore}")
+
+
+def _dotted(value: Any, name: str) -> Any:
+    for part in name.split("."):
+        value = getattr(value, part, None)
+    return value
+
+
+def _restore_line(name: str, value: Any) -> str:
+    parent, _, leaf = name.rpartition(".")
+    line = f"'{leaf}: {value}'" if value is not None else f"the '{leaf}:' line (the run's value)"
+    return f"put back {line}" + (f" under {parent}" if parent else "")
+
+
 def read_config_file(path: Path | str, config_type: type[ConfigT]) -> ConfigT:
     """The ``config_type`` instance stored in ``path`` (a run's ``config.yml`` holds a ``TrainerConfig``), its fields'
     types and ranges checked; a :class:`ConfigFileError` naming the file when it holds anything else."""

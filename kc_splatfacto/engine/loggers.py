@@ -19,7 +19,7 @@ import torch
 
 from kc_splatfacto.engine.base_config import LoggingConfig
 from kc_splatfacto.engine.callbacks import RecordSink
-from kc_splatfacto.errors import UserError
+from kc_splatfacto.errors import import_optional
 
 #: record fields that are bookkeeping, not curves
 SKIPPED_FIELDS = frozenset({"kind", "step", "split", "path", "reason", "lpips_net", "lpips_unavailable", "per_image",
@@ -29,8 +29,9 @@ CLOCK_FIELDS = frozenset({"elapsed_s", "train_s", "train_cpu_s"})
 INSTALL_HINT = {"tensorboard": "pip install 'kc-splatfacto[tensorboard]'", "wandb": "pip install 'kc-splatfacto[wandb]'"}
 
 
-def _missing(package: str, flag: str, exc: Exception) -> UserError:
-    return UserError(f"{flag} needs the {package} package, which does not import ({exc}): {INSTALL_HINT[package]}")
+def import_backend(module: str, package: str, flag: str) -> Any:
+    """``module`` imported for ``flag``; a one-line :class:`UserError` when ``package`` is missing or broken."""
+    return import_optional(module, package, flag, INSTALL_HINT[package])
 
 
 def flatten_record(record: dict[str, Any]) -> dict[str, float]:
@@ -95,11 +96,8 @@ class TensorboardSink(RecordSink):
     """Tensorboard event files in ``log_dir`` (torch's ``SummaryWriter``)."""
 
     def __init__(self, log_dir: Path, pipeline=None, eval_images: int = 1):
-        try:
-            from torch.utils.tensorboard import SummaryWriter
-        except ImportError as exc:
-            raise _missing("tensorboard", "--logging.tensorboard", exc) from exc
-        self.writer = SummaryWriter(log_dir=str(log_dir))
+        tensorboard = import_backend("torch.utils.tensorboard", "tensorboard", "--logging.tensorboard")
+        self.writer = tensorboard.SummaryWriter(log_dir=str(log_dir))
         self.pipeline, self.eval_images = pipeline, eval_images
         self._step_time = _StepTime()
 
@@ -137,11 +135,7 @@ class WandbSink(RecordSink):
     """An offline wandb run in ``run_dir/wandb`` (``wandb sync`` uploads it); the run's config as its config."""
 
     def __init__(self, run_dir: Path, project: str, config: Any = None, pipeline=None, eval_images: int = 1):
-        try:
-            import wandb
-        except ImportError as exc:
-            raise _missing("wandb", "--logging.wandb", exc) from exc
-        self.wandb = wandb
+        wandb = self.wandb = import_backend("wandb", "wandb", "--logging.wandb")
         self.run = wandb.init(project=project, name=Path(run_dir).name, dir=str(run_dir), mode="offline",
                               config=_plain(config) if config is not None else None, reinit="create_new")
         self.pipeline, self.eval_images = pipeline, eval_images
@@ -166,13 +160,10 @@ class WandbSink(RecordSink):
 def check_backends(logging: LoggingConfig) -> None:
     """The packages the asked-for backends need import (a :class:`UserError` with the install line when not):
     checked before the scene loads."""
-    for enabled, package, flag in ((logging.tensorboard, "torch.utils.tensorboard", "--logging.tensorboard"),
-                                   (logging.wandb, "wandb", "--logging.wandb")):
+    for enabled, module, flag in ((logging.tensorboard, "torch.utils.tensorboard", "--logging.tensorboard"),
+                                  (logging.wandb, "wandb", "--logging.wandb")):
         if enabled:
-            try:
-                __import__(package)
-            except ImportError as exc:
-                raise _missing(flag.split(".")[-1], flag, exc) from exc
+            import_backend(module, flag.split(".")[-1], flag)
 
 
 def logging_sinks(logging: LoggingConfig, run_dir: Path, pipeline=None, config: Any = None) -> list[RecordSink]:

@@ -63,7 +63,11 @@ class MetricsWriter:
     def __init__(self, path: Path, sinks: Sequence[Any] = ()):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = self.path.open("a")
+        try:
+            self._file = self.path.open("a")
+        except OSError as exc:  # before the first step: nothing to save yet, a line naming the file is enough
+            raise UserError(f"cannot append to the run's log {self.path} ({exc.strerror or exc}): make it a writable "
+                            "file and run the command again") from exc
         self.sinks = list(sinks)
         self.failure: str | None = None
 

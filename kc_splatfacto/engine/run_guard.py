@@ -1,8 +1,8 @@
 """Checks that run before a training run loads any data, and the resume rules.
 
 :func:`plan_run` refuses settings that would silently do nothing or the wrong thing, before the (slow) scene load:
-- an output folder that cannot be written (every field's type and range were checked when the trainer was built:
-  :mod:`kc_splatfacto.engine.validation`);
+- an output folder that cannot be written (a resume of the same run writes in its own folder, checked instead;
+  every field's type and range were checked when the trainer was built: :mod:`kc_splatfacto.engine.validation`);
 - a resume (``load_dir``) whose checkpoint is past ``max_num_iterations`` (it would train nothing);
 - a resume of another scene's, method's or dataparser's run: it would overwrite that run's ``config.yml`` and
   ``dataparser_transforms.json`` and delete its checkpoints. ``resume_from_other_run`` allows it, into a *new* run
@@ -36,12 +36,14 @@ from kc_splatfacto.data.demo import DemoDataParserConfig
 from kc_splatfacto.data.detect import DEMO_NAME, AutoDataParserConfig
 from kc_splatfacto.engine.checkpoints import (
     CHECKPOINT_DIR,
+    IDENTITY_FIELDS,
+    RUN_IDENTITY_KEY,
     check_checkpoint_fits,
     find_checkpoint,
     load_checkpoint,
     remove_orphan_temp_files,
 )
-from kc_splatfacto.engine.config_file import read_config_file
+from kc_splatfacto.engine.config_file import check_lines_kept, read_config_file
 from kc_splatfacto.engine.datamanager import DataManager
 from kc_splatfacto.errors import ResumeError, UserError
 from kc_splatfacto.metrics import SSIM_WINDOW
@@ -73,20 +75,44 @@ class RunPlan:
 
 
 def check_output_dir(config: TrainerConfig) -> None:
-    """The runs' root folder can be written (every field's type and range were checked when the trainer was built:
-    engine/validation.py)."""
-    check_writable_folder(Path(config.output_dir), "--output-dir")
+    """The folder new run folders go into must be writable; the message names ``--output-dir`` as the user gave it,
+    or, when it is the default, says so (a user who never typed the flag is told what it is and that it exists)."""
+    folder = Path(config.output_dir)
+    default = next((f.default for f in dataclasses.fields(config) if f.name == "output_dir"), None)
+    if isinstance(default, (str, os.PathLike)) and folder == Path(default):
+        check_writable_folder(folder, "--output-dir's default",
+                              "pass --output-dir with a folder you can write to, or run from another folder")
+    else:
+        check_writable_folder(folder, "--output-dir")
 
 
-def check_writable_folder(folder: Path, what: str) -> None:
-    """Create ``folder`` if needed and write a probe file in it; a :class:`UserError` naming it when that fails."""
+def check_writable_folder(folder: Path, what: str, fix: str | None = None) -> None:
+    """Create ``folder`` if needed and write a probe file in it; a :class:`UserError` naming it (``what``: the flag
+    that set it, or a description with ``fix`` saying what to do) when that fails."""
     try:
         folder.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryFile(dir=folder):
             pass
     except OSError as exc:
+        reason = "it is a file" if folder.is_file() else exc.strerror or exc
         raise UserError(
-            f"{what} {folder} is not a writable folder ({exc.strerror or exc}): choose another with {what}"
+            f"{what} {folder} is not a writable folder ({reason}): {fix or f'choose another with {what}'}"
+        ) from exc
+
+
+def check_metrics_log(path: Path) -> None:
+    """A resumed run appends to its ``metrics.jsonl``: one that cannot be opened for appending (read-only, a folder
+    in its place) is a :class:`ResumeError` before the scene loads, not a traceback after it. A missing log is
+    fine (the run folder is writable: the writer creates it)."""
+    if not os.path.lexists(path):
+        return
+    try:
+        os.close(os.open(path, os.O_WRONLY | os.O_APPEND))
+    except OSError as exc:
+        fix = "move that folder away" if os.path.isdir(path) else f"make the file writable (chmod u+w {path})"
+        raise ResumeError(
+            f"the run's log {path} cannot be appended to ({exc.strerror or exc}), and a resume writes its records "
+            f"there: {fix}, or resume from a copy of the run folder"
         ) from exc
 
 
@@ -221,7 +247,8 @@ def plan_run(config: TrainerConfig, map_location: Any = "cpu") -> RunPlan:
     """The checks of this module; returns the run's resolved dataparser, where the run writes and the checkpoint it
     resumes from. A scene that cannot be read (none given, unknown format) is refused here, before any checkpoint
     loads."""
-    check_output_dir(config)
+    if config.load_dir is None or config.resume_from_other_run:  # a same-run resume writes into its own folder
+        check_output_dir(config)
     dataparser = config.pipeline.datamanager.resolve_dataparser()
     if config.load_dir is None:
         return RunPlan(dataparser=dataparser)
@@ -242,12 +269,17 @@ def plan_run(config: TrainerConfig, map_location: Any = "cpu") -> RunPlan:
         stored = read_config_file(stored_path, type(config))
         stored_parser = comparable_dataparser(stored)
         problems = differences(stored, config, stored_parser=stored_parser, current_parser=dataparser)
+        if problems and not config.resume_from_other_run:
+            check_lines_kept(stored_path, stored, _fields_behind(problems, checkpoint),
+                             f"it differs from this command ({'; '.join(problems)})")
         if not problems:
             changed = setting_differences(stored, config, stored_parser, dataparser)
             if changed and config.resume_from_other_run:
                 check_checkpoint_fits(checkpoint, config, path, same_method=False)
                 return RunPlan(dataparser=dataparser, checkpoint=checkpoint, checkpoint_path=path)
             if changed:
+                check_lines_kept(stored_path, stored, _fields_behind(changed, checkpoint),
+                                 f"it differs from this command ({'; '.join(changed)})")
                 raise ResumeError(
                     f"--load-dir {config.load_dir}: this command would train that run on with other settings than "
                     f"its {stored_path} ({'; '.join(changed)}), and config.yml would then describe its first "
@@ -265,10 +297,23 @@ def plan_run(config: TrainerConfig, map_location: Any = "cpu") -> RunPlan:
         return RunPlan(dataparser=dataparser, checkpoint=checkpoint, checkpoint_path=path)
     check_checkpoint_fits(checkpoint, config, path)  # the run's config.yml and its checkpoint must agree
     check_writable_folder(run_dir, "the run folder")
+    check_metrics_log(run_dir / "metrics.jsonl")
     remove_orphan_temp_files(run_dir / CHECKPOINT_DIR)
     trimmed = trim_metrics(run_dir / "metrics.jsonl", step)
     return RunPlan(dataparser=dataparser, run_dir=run_dir, checkpoint=checkpoint, checkpoint_path=path,
                    trimmed_records=trimmed)
+
+
+def _fields_behind(differing: list[str], checkpoint: dict[str, Any]) -> dict[str, Any]:
+    """{dotted config field: its value in the run (the checkpoint's record), or None} behind the entries of
+    :func:`differences` and :func:`setting_differences` ("method a vs b", "scene ...", "pipeline.model.x a vs b")."""
+    recorded = checkpoint.get(RUN_IDENTITY_KEY) or {}
+    named = {"method": "method_name", "scene": "pipeline.datamanager.dataparser.data"}
+    fields = {named.get(entry.split(" ", 1)[0], entry.split(" ", 1)[0]): None for entry in differing}
+    for key, name in IDENTITY_FIELDS.items():
+        if name in fields:
+            fields[name] = recorded.get(key)
+    return fields
 
 
 def check_training_image_sizes(datamanager: DataManager, model_config: SplatfactoModelConfig) -> None:
@@ -319,6 +364,7 @@ def announce_seed_points(datamanager: DataManager, model_config: SplatfactoModel
 __all__ = [
     "RunPlan",
     "announce_seed_points",
+    "check_metrics_log",
     "check_output_dir",
     "check_training_image_sizes",
     "check_writable_folder",

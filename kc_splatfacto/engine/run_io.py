@@ -12,12 +12,14 @@ from kc_splatfacto.data.dataset import ImageDataset
 from kc_splatfacto.data.detect import DEMO_NAME
 from kc_splatfacto.engine.checkpoints import (
     CHECKPOINT_DIR,
+    CheckpointMismatchError,
     check_checkpoint_fits,
     checkpoint_step,
     find_checkpoint,
     load_checkpoint,
 )
 from kc_splatfacto.engine.config import load_config
+from kc_splatfacto.engine.config_file import check_lines_kept
 from kc_splatfacto.engine.pipeline import Pipeline
 from kc_splatfacto.engine.trainer import TrainerConfig
 from kc_splatfacto.errors import UserError
@@ -84,7 +86,11 @@ def load_run(config_path: Path | str, step: int | None = None, device: str | tor
     dataparser = datamanager_config.resolve_dataparser()  # recorded resolved: a copy with the stored scene, no detection
     pipeline = config.pipeline.setup(device=device, seed=config.machine.seed, dataparser=dataparser)  # as in training
     checkpoint = load_checkpoint(checkpoint_path, map_location=device)
-    check_checkpoint_fits(checkpoint, config, checkpoint_path)
+    try:
+        check_checkpoint_fits(checkpoint, config, checkpoint_path)
+    except CheckpointMismatchError as exc:  # a config.yml that lost a line is not another run's
+        check_lines_kept(config_path, config, exc.recorded, f"it does not fit the checkpoint {checkpoint_path}")
+        raise
     pipeline.load_state_dict({"model": checkpoint["model"]}, step=int(checkpoint["step"]))
     model = pipeline.model
     model.eval()

@@ -23,7 +23,7 @@ import time
 from typing import Any, Callable, Sequence
 
 from kc_splatfacto.engine.signals import current_stop_handlers, install_stop_handlers, restore_handlers
-from kc_splatfacto.errors import UserError
+from kc_splatfacto.errors import UserError, import_optional
 from kc_splatfacto.study.runs import RunSpec, execute_run, write_returned_files
 
 RAY_INSTALL = "pip install 'kc-splatfacto[cluster]'  (or: pip install 'ray>=2.9')"
@@ -45,10 +45,12 @@ class RayUnavailableError(UserError, ImportError):
 def import_ray(why: str):
     """The ``ray`` module, or a one-line :class:`RayUnavailableError` saying how to install it."""
     try:
-        import ray
-    except ImportError as exc:
-        raise RayUnavailableError(f"{why} needs Ray, which is not installed: {RAY_INSTALL}") from exc
-    return ray
+        return import_optional("ray", "ray", why, RAY_INSTALL)
+    except UserError as exc:
+        cause = exc.__cause__
+        if isinstance(cause, ImportError) and cause.name == "ray":  # absent (a broken install keeps its own message)
+            raise RayUnavailableError(f"{why} needs Ray, which is not installed: {RAY_INSTALL}") from cause
+        raise
 
 
 def format_duration(seconds: float | None) -> str:

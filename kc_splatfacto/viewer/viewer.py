@@ -29,10 +29,12 @@ from kc_splatfacto.atomic import atomic_write_text
 from kc_splatfacto.data.outputs import Cameras
 from kc_splatfacto.engine.base_config import ViewerConfig
 from kc_splatfacto.engine.callbacks import RecordSink, TrainingCallback, TrainingCallbackLocation
-from kc_splatfacto.errors import UserError
+from kc_splatfacto.errors import UserError, import_optional
 from kc_splatfacto.viewer.cameras import (
+    FRUSTUM_FALLBACK_SCALE,
     camera_from_pose,
     camera_path_json,
+    frustum_scale,
     pinhole_K,
     pose_of,
     render_size,
@@ -99,11 +101,7 @@ def start_server(viser, host: str, port: int, timeout: float = SERVER_START_TIME
 
 
 def import_viser():
-    try:
-        import viser
-    except ImportError as exc:
-        raise UserError(f"the viewer needs the viser package, which does not import ({exc}): {INSTALL_HINT}") from exc
-    return viser
+    return import_optional("viser", "viser", "the viewer", INSTALL_HINT)
 
 
 def render_rgb(model, camera: Cameras) -> np.ndarray:
@@ -202,13 +200,11 @@ class Viewer(RecordSink):
 
     def _add_training_frustums(self, dataset) -> None:
         self._frustums = []
-        self._frustum_scale = 0.1
+        self._frustum_scale = FRUSTUM_FALLBACK_SCALE
         if self.train_cameras is None or len(self.train_cameras) == 0:
             return
         wxyz, position, fov = pose_of(self.train_cameras)
-        centres = position
-        extent = float(np.linalg.norm(centres - centres.mean(0), axis=1).max()) if len(centres) > 1 else 1.0
-        scale = self._frustum_scale = 0.05 * max(extent, 1e-3)
+        scale = self._frustum_scale = frustum_scale(position)
         thumbnails = len(self.train_cameras) <= MAX_THUMBNAILS
         for i in range(len(self.train_cameras)):
             aspect = float(self.train_cameras.widths[i]) / float(self.train_cameras.heights[i])

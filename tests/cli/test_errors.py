@@ -69,6 +69,49 @@ def test_a_bug_keeps_its_traceback(tmp_path, monkeypatch):
         run_cli("kc-x", lambda argv: {}["missing"], [])
 
 
+def test_ctrl_c_is_one_line_and_exit_130_and_debug_shows_the_traceback(capsys):
+    """Ctrl-C anywhere a tool has not handled it (issue 37): one line and the shell's code for SIGINT; a handled one
+    (:class:`Interrupted`) says what is left; --debug lets it through."""
+    from kc_splatfacto.errors import Interrupted
+
+    def pressed(argv):
+        raise KeyboardInterrupt
+
+    def handled(argv):
+        raise Interrupted("nothing was written to out/;\n run the same command again")
+
+    assert run_cli("kc-x", pressed, []) == 130
+    assert capsys.readouterr().err == "kc-x: interrupted (Ctrl-C)\n"
+    assert run_cli("kc-x", handled, []) == 130
+    assert capsys.readouterr().err == "kc-x: interrupted (Ctrl-C): nothing was written to out/; run the same command again\n"
+    with pytest.raises(KeyboardInterrupt):
+        run_cli("kc-x", pressed, ["--debug"])
+
+
+def _package(root: Path, name: str, source: str) -> None:
+    (root / name).mkdir()
+    (root / name / "__init__.py").write_text(source)
+
+
+def test_an_optional_package_missing_or_broken_is_one_line_naming_which(tmp_path, monkeypatch):
+    """Absent: the install line. Installed but failing to import (its own code raising, or one of its own imports
+    missing): named as a broken install with the error's first line, whatever it raises."""
+    from kc_splatfacto.errors import UserError, import_optional
+
+    _package(tmp_path, "kc_broken_raises", 'raise TypeError("Descriptors cannot be created directly.\\nmore")\n')
+    _package(tmp_path, "kc_broken_needs", "import kc_no_such_dependency\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    with pytest.raises(UserError, match=r"^--x needs the kc_absent package, which does not import \(No module named "
+                                        r"'kc_absent'\): pip install kc-absent$"):
+        import_optional("kc_absent", "kc_absent", "--x", "pip install kc-absent")
+    with pytest.raises(UserError, match=r"^--x: the kc_broken_raises package is installed but fails to import "
+                                        r"\(TypeError: Descriptors cannot be created directly\.\): repair it"):
+        import_optional("kc_broken_raises", "kc_broken_raises", "--x", "")
+    with pytest.raises(UserError, match=r"kc_broken_needs package is installed but fails to import "
+                                        r"\(ModuleNotFoundError: No module named 'kc_no_such_dependency'\)"):
+        import_optional("kc_broken_needs", "kc_broken_needs", "--x", "")
+
+
 def test_installed_kc_train_prints_one_line_and_exits_2(tmp_path):
     env = dict(os.environ)
     env.pop("KC_DEBUG", None)

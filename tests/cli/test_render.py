@@ -4,6 +4,7 @@ frame at the render's size; nerfstudio camera-path JSON gives the cameras nerfst
 from __future__ import annotations
 
 import json
+import math
 
 import cv2
 import numpy as np
@@ -190,6 +191,29 @@ def test_bad_camera_path_json_is_named(tmp_path, content, message):
     file.write_text(content)
     with pytest.raises(CameraPathError, match=message):
         read_camera_path(file)
+
+
+def _one_camera_path(tmp_path, fov, height: int = 48):
+    file = tmp_path / "path.json"
+    file.write_text(json.dumps({"render_width": height * 4 // 3, "render_height": height, "camera_path": [
+        {"camera_to_world": [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1], "fov": fov}]}))
+    return file
+
+
+@pytest.mark.parametrize("fov", [5e-324, 1e-300, 1e-9])
+def test_a_field_of_view_too_narrow_to_render_is_named(tmp_path, fov):
+    """5e-324 degrees divides by zero, 1e-300 gives an infinite float32 focal length (the rasterizer's traceback),
+    1e-9 a pixel of 4e-13 rad, far below what float32 resolves: each is refused naming the camera and the smallest
+    fov that renders 48 pixels high (48 x float32's epsilon, in degrees)."""
+    with pytest.raises(CameraPathError, match=r"camera_path\[0\]\.fov is .* degrees, too narrow to render 48 pixels "
+                                              r"high .*use a fov of at least 0\.00033 degrees"):
+        read_camera_path(_one_camera_path(tmp_path, fov))
+
+
+def test_a_telephoto_field_of_view_renders(tmp_path):
+    """Half a degree over 4000 pixels (a 2000 mm lens on a full-frame sensor is 0.7 degrees) is read as given."""
+    cameras = read_camera_path(_one_camera_path(tmp_path, 0.5, height=4000)).cameras
+    assert float(cameras.Ks[0, 1, 1]) == pytest.approx(2000 / math.tan(math.radians(0.25)), rel=1e-6)
 
 
 def test_bad_camera_path_is_one_line_exit_2(rendered, tmp_path, capsys):

@@ -270,9 +270,12 @@ def test_a_failed_overwrite_keeps_the_old_scene(tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "photos"]  # no staging folder left
 
 
-def test_publishing_replaces_every_part_and_an_error_midway_keeps_the_old_ones(tmp_path, monkeypatch):
+@pytest.mark.parametrize("failure", [OSError(28, "No space left on device"), KeyboardInterrupt()],
+                         ids=["disk-full", "ctrl-c"])
+def test_publishing_replaces_every_part_and_an_error_midway_keeps_the_old_ones(tmp_path, monkeypatch, failure):
     """The last step of a successful --overwrite: the new parts replace the old, a part the new scene lacks (its
-    split lists) is gone too; a rename that fails midway puts the old parts back."""
+    split lists) is gone too; a rename that fails midway, or a Ctrl-C there, puts the old parts back (the staging
+    folder, where they wait, is deleted afterwards)."""
     from kc_splatfacto.data import sfm
 
     def build(root, parts):
@@ -299,11 +302,11 @@ def test_publishing_replaces_every_part_and_an_error_midway_keeps_the_old_ones(t
 
     def failing_replace(self, target):
         if Path(self).parent == staging2 and Path(self).name == "sparse":
-            raise OSError(28, "No space left on device")
+            raise failure
         return real_replace(self, target)
 
     monkeypatch.setattr(Path, "replace", failing_replace)
-    with pytest.raises(OSError):
+    with pytest.raises(type(failure)):
         sfm.publish_scene(staging2, scene2)
     monkeypatch.undo()
     assert files(scene2)["sparse/0/cameras.txt"] == "old" and files(scene2)["train_list.txt"] == "a"

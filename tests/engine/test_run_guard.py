@@ -404,3 +404,20 @@ def test_load_dir_may_name_the_checkpoint_file(tmp_path):
     (run_dir / "notes.txt").write_text("x")
     with pytest.raises(CheckpointNotFoundError, match="not a step-XXXXXXXXX.ckpt"):
         find_checkpoint(run_dir / "notes.txt")
+
+
+def test_missing_fields_are_the_lines_a_config_lost(tmp_path):
+    """Issue 37, category 6: the reader fills a lost line with the field's default, so only the file tells; the
+    dotted names of exactly the removed lines come back (a nested one with its path), none for the file as written."""
+    from kc_splatfacto.engine.config_file import missing_fields, save_config
+    from kc_splatfacto.engine.trainer import TrainerConfig
+
+    path = tmp_path / "config.yml"
+    save_config(tiny_demo_config("kc-splatfacto", tmp_path / "out"), path)
+    assert missing_fields(path, load_config(path)) == []
+    lines = path.read_text().splitlines(keepends=True)
+    lost = ("method_name:", "      kc_weight:", "      width:")
+    path.write_text("".join(line for line in lines if not line.startswith(lost)))
+    assert sorted(missing_fields(path, load_config(path))) == [
+        "method_name", "pipeline.datamanager.dataparser.width", "pipeline.model.frequency.kc_weight"]
+    assert load_config(path).method_name == TrainerConfig().method_name  # the default, without a word

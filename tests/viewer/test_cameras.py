@@ -12,8 +12,11 @@ from scipy.spatial.transform import Rotation
 
 from kc_splatfacto.data.demo import DemoDataParserConfig
 from kc_splatfacto.viewer.cameras import (
+    FRUSTUM_FALLBACK_SCALE,
+    FRUSTUM_SPACING_FRACTION,
     camera_from_pose,
     camera_path_json,
+    frustum_scale,
     pose_of,
     render_size,
     splat_arrays,
@@ -93,3 +96,63 @@ def test_splats_are_what_the_ply_export_holds(tmp_path):
     dc = np.stack([vertex["f_dc_0"], vertex["f_dc_1"], vertex["f_dc_2"]], 1).astype(np.float64)
     np.testing.assert_allclose(splats["rgbs"], np.clip(0.28209479177387814 * dc + 0.5, 0, 1), atol=1e-6)
     np.testing.assert_allclose(splats["opacities"][:, 0], 1 / (1 + np.exp(-vertex["opacity"].astype(np.float64))), atol=1e-6)
+
+
+# ----------------------------------------------------------------------------------- frustum size (issue 37, cat. 8)
+def _median_nearest_brute_force(centres: np.ndarray) -> float:
+    """The median over distinct centres of the distance to the nearest other one, from every pairwise distance."""
+    distinct = np.array(sorted({tuple(c) for c in centres.tolist()}))
+    distances = np.sqrt(((distinct[:, None, :] - distinct[None, :, :]) ** 2).sum(-1))
+    np.fill_diagonal(distances, np.inf)
+    return float(np.median(distances.min(axis=1)))
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_frustum_scale_is_a_fraction_of_the_median_nearest_neighbour_distance(seed):
+    rng = np.random.default_rng(seed)
+    centres = rng.normal(size=(int(rng.integers(2, 60)), 3)) * rng.uniform(0.01, 10.0)
+    with_twins = np.concatenate([centres, centres[: len(centres) // 2]])  # a camera at a place counts once
+    expected = FRUSTUM_SPACING_FRACTION * _median_nearest_brute_force(centres)
+    assert frustum_scale(centres) == pytest.approx(expected, rel=1e-12)
+    assert frustum_scale(with_twins) == pytest.approx(expected, rel=1e-12)
+
+
+def test_frustum_scale_without_spacing_falls_back():
+    assert frustum_scale(np.zeros((1, 3))) == FRUSTUM_FALLBACK_SCALE
+    assert frustum_scale(np.ones((5, 3))) == FRUSTUM_FALLBACK_SCALE  # every camera at one place
+    assert frustum_scale(np.zeros((0, 3))) == FRUSTUM_FALLBACK_SCALE
+
+
+def _covered(view_c2w: np.ndarray, view_fov: float, frustums: list[tuple[np.ndarray, float]], scale: float,
+             samples: int = 200) -> float:
+    """Share of a square view (vertical fov ``view_fov``) whose rays hit a frustum's image plane: the rectangle at
+    depth ``scale`` along its camera's z axis, ``scale * tan(fov / 2)`` half a side (square images)."""
+    half = math.tan(view_fov / 2)
+    u, v = np.meshgrid(np.linspace(-half, half, samples), np.linspace(-half, half, samples))
+    rays = np.stack([u, v, np.ones_like(u)], -1).reshape(-1, 3) @ view_c2w[:3, :3].T
+    origin, hit = view_c2w[:3, 3], np.zeros(len(rays), bool)
+    for c2w, fov in frustums:
+        normal, centre = c2w[:3, 2], c2w[:3, 3] + scale * c2w[:3, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            depth = ((centre - origin) @ normal) / (rays @ normal)
+        local = (origin + depth[:, None] * rays - centre) @ c2w[:3, :3]
+        hit |= (depth > 0) & (np.abs(local[:, :2]) <= scale * math.tan(fov / 2)).all(axis=1)
+    return float(hit.mean())
+
+
+def test_frustums_of_a_dense_capture_leave_the_view_between_them_free():
+    """100 cameras 1 cm apart along a line, all looking ahead (frames of a walk), with the viewer's camera halfway
+    between two of them: the thumbnails cover almost none of its view (the earlier rule, 5 % of the cameras' extent,
+    made each 5 cm deep, and the two beside the view covered most of it)."""
+    fov = math.radians(50)
+    poses = []
+    for x in np.arange(100) * 0.01:
+        c2w = np.eye(4)
+        c2w[0, 3] = x
+        poses.append(c2w)
+    scale = frustum_scale(np.array([p[:3, 3] for p in poses]))
+    view = np.eye(4)
+    view[0, 3] = 0.495
+    assert scale == pytest.approx(FRUSTUM_SPACING_FRACTION * 0.01)
+    assert _covered(view, fov, [(p, fov) for p in poses], scale) < 0.02
+    assert _covered(view, fov, [(p, fov) for p in poses], 0.05 * 0.495) > 0.5  # the old size: the view filled
