@@ -187,6 +187,13 @@ def _no_run_in(folder: str) -> Callable[[Path], None]:
     return check
 
 
+def _no_output_dir(folder: str) -> Callable[[Path], None]:
+    def check(root: Path) -> None:
+        assert not (root / folder).exists()  # refused before any folder is made
+
+    return check
+
+
 def _older_scene_kept_after_ctrl_c(root: Path) -> None:
     _older_scene_kept(root)
     assert sorted(p.name for p in (root / "scene").iterdir()) == ["sparse"]
@@ -358,7 +365,7 @@ CASES = [
     Case("logging-package-that-fails-to-import", 5, "kc-train", lambda root: [
         *TRAIN, "--output-dir", str(root / "other"), "--logging.wandb"], 2,
          "--logging.wandb: the wandb package is installed but fails to import (TypeError: Descriptors cannot be "
-         "created directly.)", patch=_broken_wandb, check=_no_run_in("other")),
+         "created directly.)", patch=_broken_wandb, check=_no_output_dir("other")),
     # 6: unclear messages
     Case("eval-config-that-lost-a-line", 6, "kc-eval", lambda root: ["--load-config", str(root / "resumable")], 2,
          "config.yml is incomplete (edited by hand, or written by an older version?): it has no line for "

@@ -266,9 +266,9 @@ class Trainer:
     # ----------------------------------------------------------------------------------------------- set-up
     def setup(self) -> None:
         cfg = self.config
-        plan = plan_run(cfg, map_location=self.device)  # bad settings and foreign resumes refused before data loads
+        check_backends(cfg.logging)  # a logging package that cannot load: refused before any folder is made
+        plan = plan_run(cfg, map_location=self.device)  # foreign resumes, unwritable folders refused before data loads
         self._dataparser = plan.dataparser
-        check_backends(cfg.logging)
         cfg.machine.seed_everything()
         self._pipeline = cfg.pipeline.setup(device=self.device, seed=cfg.machine.seed, dataparser=plan.dataparser)
         check_training_image_sizes(self.datamanager, cfg.pipeline.model)
