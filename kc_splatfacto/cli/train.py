@@ -100,10 +100,27 @@ def parse_command_line(argv: list[str]):
         print(short_help(method, methods[method].description, methods[method].config))
         raise SystemExit(0)
     argv = ["--help" if a == HELP_ALL_FLAG else a for a in argv]
-    valid = [SCENE_FLAG] + ([f.name for f in config_flags(methods[method].config)] if method else [])
+    method_flags = [f.name for f in config_flags(methods[method].config)] if method else []
+    check_method_flags_come_first(argv, method_flags, parsers)
+    valid = [SCENE_FLAG] + method_flags
     valid += [f.name for flags in parsers.values() for f in flags] + list(HELP_FLAGS)
     with tyro_errors_as_one_line(valid, [*methods, *parsers], "kc-train"):
         return parse_config(argv)
+def check_method_flags_come_first(argv: list[str], method_flags: list[str], parsers: dict[str, list]) -> None:
+    """A method's option after the dataparser subcommand is tyro's "unrecognized option" (with itself as the closest
+    name): a :class:`UserError` saying where it goes instead."""
+    at = subcommand_index(argv, parsers)
+    if at >= len(argv):
+        return
+    subcommand = argv[at]
+    own = {flag.name for flag in parsers[subcommand]}
+    for arg in argv[at + 1:]:
+        name = arg.split("=", 1)[0]
+        if name in method_flags and name not in own:
+            raise UserError(f"{name} is an option of the method, not of the dataparser '{subcommand}': put it before "
+                            f"'{subcommand}' (kc-train METHOD --data SCENE [OPTIONS] [DATAPARSER [DATAPARSER OPTIONS]])")
+
+
 #: boolean options that also work bare (``--viewer`` for ``--viewer.enabled True``), as nerfstudio users type them
 BARE_FLAGS = {"--viewer": "--viewer.enabled", "--logging.tensorboard": "--logging.tensorboard",
               "--logging.wandb": "--logging.wandb"}
