@@ -338,6 +338,10 @@ CASES = [
     Case("bench-output-dir-under-a-file", 5, "kc-bench", lambda root: [
         *study(), "--output-dir", str(root / "run" / "config.yml" / "report")], 2,
          "config.yml/report cannot be created:"),
+    Case("bench-set-out-of-range", 5, "kc-bench", lambda root: [
+        *study(), "--set", "pipeline.model.frequency.kc_weight=-1", "--output-dir", str(root / "other")], 2,
+         "--set or the study's flags give the splatfacto runs a value out of range: "
+         "pipeline.model.frequency.kc_weight = -1.0 is not allowed", check=_no_output_dir("other")),
     Case("method-configs-malformed", 5, "kc-bench", lambda root: [*study(), "--output-dir", str(root / "other")], 2,
          "'garbage' must have the form name=module:attribute",
          edit=lambda root: os.environ.__setitem__("KC_SPLATFACTO_METHOD_CONFIGS", "garbage")),

@@ -52,6 +52,7 @@ from kc_splatfacto.cli.train import override_config
 from kc_splatfacto.data.detect import AutoDataParserConfig
 from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.optimizers import SPLATFACTO_SCHEDULE_STEPS  # ``--steps-scale auto``: budget / this
+from kc_splatfacto.engine.validation import ConfigValueError, validate_config
 from kc_splatfacto.errors import UserError
 from kc_splatfacto.registry import discover_methods
 from kc_splatfacto.study.machine import machine_kinds
@@ -151,6 +152,15 @@ def build_run_config(
     return config
 
 
+def check_run_config(config: Any, method: str) -> None:
+    """A value the study's flags put out of its range (``--set``, ``--max-num-iterations``, ...) refuses the study
+    before any run starts, in one line, rather than failing every run of it (each trainer checks its config again)."""
+    try:
+        validate_config(config)
+    except ConfigValueError as exc:
+        raise BenchArgumentError(f"--set or the study's flags give the {method} runs a value out of range: {exc}") from exc
+
+
 def plan_runs(args: argparse.Namespace, methods_available: dict, runs_dir: Path) -> list[RunSpec]:
     """Every run of the study, seed-major (seed, then scene, then method): a study stopped part-way has the same
     number of paired seeds on every scene. Each run's config is built (and its overrides checked) before any runs."""
@@ -175,6 +185,7 @@ def plan_runs(args: argparse.Namespace, methods_available: dict, runs_dir: Path)
                     device=args.device, overrides=args.set,
                 )
                 config.steps_per_save = args.steps_per_save if args.steps_per_save > 0 else args.max_num_iterations
+                check_run_config(config, method)
                 label_dir = runs_dir / scene / method / f"seed{seed}"
                 specs.append(RunSpec(index=len(specs), scene=scene, method=method, seed=seed,
                                      run_dir=label_dir.absolute(), config=config, max_steps=args.max_num_iterations,
