@@ -38,12 +38,10 @@ Moments = tuple[Tensor, Tensor | None, Tensor | None]
 def _image_power(coeffs: WaveletCoeffs) -> Tensor:
     """[B, C, 1] mean square over all the image's coefficients (approx and details), detached, floored."""
     with torch.no_grad():
-        total = coeffs.approx.square().sum(dim=(-2, -1))
-        count = coeffs.approx.shape[-2] * coeffs.approx.shape[-1]
-        for band in coeffs.details:
-            total = total + torch.linalg.vector_norm(band, dim=(-3, -2, -1)).square()
-            count += band.shape[-3] * band.shape[-2] * band.shape[-1]
-        return (total / count).clamp_min(POWER_FLOOR).unsqueeze(-1)
+        # one joined copy and one dot product, not two passes per band tensor: on a GPU, where the step is bound by
+        # kernel launches, 4 launches instead of 14
+        flat = torch.cat([coeffs.approx.flatten(-2), *(band.flatten(-3) for band in coeffs.details)], dim=-1)
+        return (torch.linalg.vecdot(flat, flat) / flat.shape[-1]).clamp_min(POWER_FLOOR).unsqueeze(-1)
 
 
 def _image_power_cpu(coeffs: WaveletCoeffs) -> Tensor:

@@ -162,10 +162,13 @@ def _asked(moment: Tensor | None, name: str) -> Tensor:
 def _kurtosis_from_moments(moments: list[Moments], like: Tensor) -> Tensor:
     """k_b = m4_b / (m2_b + eps)^2 - 3 for every band, [B, C, 3J]; the moments are of c / s, so O(1) whatever the
     image's scale (m4 neither overflows nor underflows where it matters) and eps is relative to s^2."""
-    kurtosis = [_asked(m4, "m4") / (m2 + VARIANCE_REL_EPS).square() - 3.0 for m2, m4, _ in moments]
-    if not kurtosis:
+    if not moments:
         return like.new_zeros((*like.shape[:2], 0))
-    return torch.cat(kurtosis, dim=-1)
+    # the levels joined first: the formula's ops run once, not once per level (on a GPU, where the step is bound by
+    # kernel launches); elementwise, so the same values to the bit
+    m2 = torch.cat([m2 for m2, _, _ in moments], dim=-1)
+    m4 = torch.cat([_asked(m4, "m4") for _, m4, _ in moments], dim=-1)
+    return m4 / (m2 + VARIANCE_REL_EPS).square() - 3.0
 
 
 def band_kurtosis(coeffs: WaveletCoeffs) -> Tensor:
@@ -184,19 +187,17 @@ def kurtosis_spread(kurtosis: Tensor) -> Tensor:
     return kurtosis.amax(dim=-1) - kurtosis.amin(dim=-1)
 
 
-def _covariances_from_moments(moments: list[Moments], power: Tensor, correlation: bool) -> list[Tensor]:
-    """Sigma^j = s^2 cov(c / s) per level, [B, C, 3, 3] (correlation: Sigma_uv / sqrt((Sigma_uu + eps)(Sigma_vv +
-    eps)), scale-free, so computed on c / s directly)."""
-    covariances = []
-    for _, _, normalized in moments:
-        cov = _asked(normalized, "cov")
-        if correlation:
-            inv_std = torch.rsqrt(torch.diagonal(cov, dim1=-2, dim2=-1) + VARIANCE_REL_EPS)
-            cov = cov * inv_std.unsqueeze(-1) * inv_std.unsqueeze(-2)
-        else:
-            cov = cov * power.unsqueeze(-1)  # undo the normalization: cov(c) = s^2 cov(c / s)
-        covariances.append(cov)
-    return covariances
+def _covariances_from_moments(moments: list[Moments], power: Tensor, correlation: bool) -> Tensor:
+    """Sigma^j = s^2 cov(c / s) of every level, stacked finest first: [J, B, C, 3, 3] (correlation: Sigma_uv /
+    sqrt((Sigma_uu + eps)(Sigma_vv + eps)), scale-free, so computed on c / s directly). The levels are stacked before
+    the formula, which then runs once (see :func:`_kurtosis_from_moments`)."""
+    if not moments:
+        return power.new_zeros((0, *power.shape[:2], 3, 3))
+    cov = torch.stack([_asked(normalized, "cov") for _, _, normalized in moments])
+    if correlation:
+        inv_std = torch.rsqrt(torch.diagonal(cov, dim1=-2, dim2=-1) + VARIANCE_REL_EPS)
+        return cov * inv_std.unsqueeze(-1) * inv_std.unsqueeze(-2)
+    return cov * power.unsqueeze(-1)  # undo the normalization: cov(c) = s^2 cov(c / s)
 
 
 def cross_band_covariance(coeffs: WaveletCoeffs, correlation: bool = False) -> list[Tensor]:
@@ -204,20 +205,18 @@ def cross_band_covariance(coeffs: WaveletCoeffs, correlation: bool = False) -> l
 
     Equals `numpy.cov(np.stack([cH, cV, cD]).reshape(3, -1))` (correlation: `numpy.corrcoef`, up to eps).
     """
-    return _covariances_from_moments(*level_moments(coeffs, False, True), correlation)
+    return list(_covariances_from_moments(*level_moments(coeffs, False, True), correlation).unbind(0))
 
 
-def _off_diagonal_energy(covariances: list[Tensor], like: Tensor) -> Tensor:
-    total = like.new_zeros(like.shape[:2])
-    for cov in covariances:
-        off_diagonal = cov - torch.diag_embed(torch.diagonal(cov, dim1=-2, dim2=-1))
-        total = total + off_diagonal.square().sum(dim=(-2, -1))
-    return total
+def _off_diagonal_energy(covariances: Tensor) -> Tensor:
+    """sum_j ||Sigma^j - diag(Sigma^j)||_F^2 of stacked covariances [J, B, C, 3, 3]: [B, C]."""
+    off_diagonal = covariances - torch.diag_embed(torch.diagonal(covariances, dim1=-2, dim2=-1))
+    return off_diagonal.square().sum(dim=(-2, -1)).sum(dim=0)
 
 
 def covariance_penalty(coeffs: WaveletCoeffs, correlation: bool = False) -> Tensor:
     """L_cov = sum over levels of the squared off-diagonal Frobenius norm of the cross-band covariance: [B, C]."""
-    return _off_diagonal_energy(cross_band_covariance(coeffs, correlation), coeffs.approx)
+    return _off_diagonal_energy(_covariances_from_moments(*level_moments(coeffs, False, True), correlation))
 
 
 # --------------------------------------------------------------------------------------------------- bands
@@ -283,7 +282,7 @@ def wavelet_bands(
             k = _kurtosis_from_moments(moments, coeffs.approx)
             spread = kurtosis_spread(k)
         if covariance:
-            l_cov = _off_diagonal_energy(_covariances_from_moments(moments, power, cbc_correlation), coeffs.approx)
+            l_cov = _off_diagonal_energy(_covariances_from_moments(moments, power, cbc_correlation))
     return WaveletBands(coeffs, k, spread, l_cov, wave, wavelet_levels, wavelet_mode, cbc_correlation,
                         tuple(image.shape))
 
