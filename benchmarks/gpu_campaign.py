@@ -701,15 +701,26 @@ def cmd_device(args) -> int:
     os.environ.update(ctx.env)
     sys.path[:0] = [str(ROOT / ".gpu" / "site"), str(ROOT)]
     status = 0
-    for item in args.phases:
-        phase, _, seconds = item.partition(":")
+    planned = [(phase, float(seconds or 60)) for phase, _, seconds in (item.partition(":") for item in args.phases)]
+    # the call's timeout is the sum of its budgets (plus Python's start): a phase that overran its own (setup's three
+    # steps each have theirs) is taken out of the later phases' budgets, never out of the packing, so what the call
+    # measured comes back even then
+    deadline = time.monotonic() + sum(budget for _, budget in planned)
+    for index, (phase, budget) in enumerate(planned):
         marker = work / "done" / phase
         if phase not in ALWAYS_RUN and marker.exists():
             print(f"[{phase}] done earlier in this lease: skipped", flush=True)
             continue
+        if phase != "pack":
+            packing = sum(b for p, b in planned[index + 1:] if p == "pack")
+            budget = min(budget, deadline - time.monotonic() - packing)
+            if budget < 1:
+                print(f"== {phase}: no time left in this call: not run", flush=True)
+                status = status or 124
+                continue
         t0 = time.monotonic()
-        code = PHASES[phase](ctx, float(seconds or 60))
-        print(f"== {phase}: exit {code} in {time.monotonic() - t0:.0f} s (budget {seconds or 60} s)", flush=True)
+        code = PHASES[phase](ctx, budget)
+        print(f"== {phase}: exit {code} in {time.monotonic() - t0:.0f} s (budget {budget:.0f} s)", flush=True)
         if code == 0 and phase not in ALWAYS_RUN:
             marker.parent.mkdir(parents=True, exist_ok=True)
             marker.touch()

@@ -7,6 +7,7 @@ import subprocess
 import sys
 import zipfile
 from pathlib import Path
+from types import SimpleNamespace
 
 from tests.conftest import PROJECT_ROOT, shared_scene
 
@@ -142,3 +143,37 @@ def test_the_dist_info_registers_the_methods_without_a_build(tmp_path):
 
     scripts = tomllib.loads((PROJECT_ROOT / "pyproject.toml").read_text())["project"]["scripts"]
     assert f"kc-train = {scripts['kc-train']}" in (info / "entry_points.txt").read_text()
+
+
+def test_a_phase_that_overruns_takes_its_time_from_the_later_phases_not_from_the_packing(tmp_path, monkeypatch):
+    """A device call's timeout is the sum of its phases' budgets: when one runs over (setup's steps each have their
+    own budget), the later phases get what is left and the packing its whole budget, so the logs still come back.
+    A fake clock that only the phases move keeps it deterministic."""
+    now = [0.0]
+    monkeypatch.setattr(campaign, "time", SimpleNamespace(monotonic=lambda: now[0], strftime=lambda *a: "t"))
+    monkeypatch.setattr(campaign.os, "environ", dict(campaign.os.environ))
+    monkeypatch.setattr(campaign.sys, "path", list(campaign.sys.path))
+    given: dict[str, float] = {}
+
+    def phase(name: str, takes: float):
+        def run(ctx, budget: float) -> int:
+            given[name] = budget
+            now[0] += takes
+            return 0
+        return run
+
+    phases = {"setup": phase("setup", 170.0), "tests": phase("tests", 60.0), "bench": phase("bench", 10.0),
+              "suite": phase("suite", 0.0), "pack": phase("pack", 5.0)}
+    monkeypatch.setattr(campaign, "PHASES", phases)
+    argv = ["device", "setup:110", "tests:60", "bench:100", "suite:20", "pack:15", "--call", "c", "--dry",
+            "--work", str(tmp_path / "work"), "--out", str(tmp_path / "out")]
+    # 305 s in all; setup overran by 60 s: tests keeps its 60 (305 - 170 - 15 left), bench gets 60 of its 100
+    # (305 - 230 - 15), the suite its 20 (50 left after bench's 10 s), the packing its whole 15
+    assert campaign.main(argv) == 0
+    assert given == {"setup": 110, "tests": 60, "bench": 60, "suite": 20, "pack": 15}
+
+    given.clear()
+    now[0] = 0.0
+    phases["setup"] = phase("setup", 290.0)  # over by 180 s: nothing left for the suite; the packing still runs
+    assert campaign.main([*argv[:-4], "--work", str(tmp_path / "work2"), "--out", str(tmp_path / "out2")]) == 124
+    assert given == {"setup": 110, "pack": 15}
