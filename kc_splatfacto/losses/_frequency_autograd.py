@@ -72,15 +72,16 @@ class _CentredMoments(torch.autograd.Function):
     @staticmethod
     def forward(ctx, flat: Tensor, inv_rms: Tensor, want_m4: bool, want_cov: bool):
         count = flat.shape[-1]
-        z = torch.addcmul(-flat.mean(dim=-1, keepdim=True) * inv_rms, flat, inv_rms)  # (x - mean) / s, fused
-        m2 = torch.linalg.vecdot(z, z) / count
-        m4 = cov = z2 = None
+        # few ops, not few passes: on a GPU the step is bound by kernel launches (each op one)
+        z = (flat - flat.mean(dim=-1, keepdim=True)) * inv_rms  # (x - mean) / s
+        z2 = z.square()
+        m2 = z2.mean(dim=-1)
+        m4 = cov = None
         if want_m4:
-            z2 = z.square()  # kept for the backward: saves two passes there
-            m4 = torch.linalg.vecdot(z2, z2) / count
+            m4 = z2.square().mean(dim=-1)
         if want_cov:
             cov = torch.matmul(z, z.transpose(-1, -2)) / max(count - 1, 1)  # numpy.cov's (P - 1) normalization
-        ctx.save_for_backward(z, z2, inv_rms)
+        ctx.save_for_backward(z, z2 if want_m4 else None, inv_rms)  # z2 saves the backward two passes
         return m2, m4, cov
 
     @staticmethod
