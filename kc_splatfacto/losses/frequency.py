@@ -205,7 +205,12 @@ def cross_band_covariance(coeffs: WaveletCoeffs, correlation: bool = False) -> l
 
     Equals `numpy.cov(np.stack([cH, cV, cD]).reshape(3, -1))` (correlation: `numpy.corrcoef`, up to eps).
     """
-    return list(_covariances_from_moments(*level_moments(coeffs, False, True), correlation).unbind(0))
+    return list(_level_covariances(coeffs, correlation).unbind(0))
+
+
+def _level_covariances(coeffs: WaveletCoeffs, correlation: bool) -> Tensor:
+    """:func:`cross_band_covariance` stacked: [J, B, C, 3, 3]."""
+    return _covariances_from_moments(*level_moments(coeffs, False, True), correlation)
 
 
 def _off_diagonal_energy(covariances: Tensor) -> Tensor:
@@ -216,7 +221,7 @@ def _off_diagonal_energy(covariances: Tensor) -> Tensor:
 
 def covariance_penalty(coeffs: WaveletCoeffs, correlation: bool = False) -> Tensor:
     """L_cov = sum over levels of the squared off-diagonal Frobenius norm of the cross-band covariance: [B, C]."""
-    return _off_diagonal_energy(_covariances_from_moments(*level_moments(coeffs, False, True), correlation))
+    return _off_diagonal_energy(_level_covariances(coeffs, correlation))
 
 
 # --------------------------------------------------------------------------------------------------- bands
