@@ -8,6 +8,7 @@ import math
 import struct
 import sys
 import time
+import zlib
 
 import pytest
 
@@ -64,7 +65,9 @@ def test_tensorboard_event_files_hold_the_metrics_log(tensorboard_run):
 
 def _wandb_records(path):
     """The protobuf records of a .wandb file (a LevelDB log after a 7-byte W&B header), read independently of
-    wandb's own writer."""
+    wandb's own writer. wandb's service process writes the file while it is read: the records end at the first
+    chunk that is cut short or whose checksum (CRC-32 of its type byte and data, as W&B writes it) does not match
+    yet, so a half-written tail is never parsed."""
     block = 32768
     data = path.read_bytes()
     assert data[:4] == b":W&B"
@@ -73,8 +76,10 @@ def _wandb_records(path):
         if block - pos % block < 7:  # a block's tail too short for a header is padding
             pos += block - pos % block
             continue
-        length, kind = struct.unpack("<HB", data[pos + 4:pos + 7])
+        checksum, length, kind = struct.unpack("<IHB", data[pos:pos + 7])
         chunk = data[pos + 7:pos + 7 + length]
+        if len(chunk) < length or zlib.crc32(bytes([kind]) + chunk) != checksum:
+            return
         pos += 7 + length
         if kind == 1:
             yield chunk
@@ -113,6 +118,16 @@ def test_wandb_offline_run_holds_the_metrics_log(tmp_path):
         time.sleep(0.5)
         history, finished = read()
     assert finished, "the offline run's log has no exit record"
+    # a tail the service has not finished writing (cut short, or not yet filled in) ends the records read, never
+    # a parse error: what such a read gives is a prefix of the whole log
+    whole = list(_wandb_records(files[0]))
+    data = files[0].read_bytes()
+    cut, garbled = tmp_path / "cut.wandb", tmp_path / "garbled.wandb"
+    cut.write_bytes(data[:len(data) - 5])
+    garbled.write_bytes(data[:-1] + bytes([data[-1] ^ 0xFF]))
+    for partial in (cut, garbled):
+        records = list(_wandb_records(partial))
+        assert records == whole[:len(records)] and len(records) < len(whole)
     train = [r for r in read_metrics(run_dir / "metrics.jsonl") if r["kind"] == "train"]
     assert train
     for record in train:
