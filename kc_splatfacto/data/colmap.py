@@ -44,6 +44,7 @@ from kc_splatfacto.data.base import (
     scene_scale_of,
 )
 from kc_splatfacto.data.colmap_files import check_model_files
+from kc_splatfacto.data.colmap_text import read_text_model
 from kc_splatfacto.data.images import (
     derived_is_fresh,
     derived_root,
@@ -185,16 +186,21 @@ def _camera_from_pycolmap(camera_id: int, camera, model_dir: Path) -> ColmapCame
 
 
 def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
-    """Read a COLMAP model (binary or text) with pycolmap.
+    """Read a COLMAP model (binary or text) with pycolmap; a text model also without it (:mod:`colmap_text`).
 
     Clear errors for unsupported cameras, NaN poses, far-from-unit quaternions, duplicate image names and a missing
     points3D file; 3D points with NaN/inf coordinates are left out with one warning (binary and text alike).
     """
+    model_dir = Path(model_dir)
     try:
         import pycolmap
-    except ImportError as exc:  # a declared dependency; the message says how to get it back
-        raise ImportError("reading COLMAP models needs pycolmap: pip install pycolmap") from exc
-    model_dir = Path(model_dir)
+    except ImportError as exc:  # a declared dependency, left out of some GPU images (issue 36): text needs none
+        if model_file(model_dir, "cameras").suffix == ".bin" or model_file(model_dir, "images").suffix == ".bin":
+            raise ImportError(
+                f"reading the binary COLMAP model in {model_dir} needs pycolmap: pip install pycolmap (or convert "
+                "it to text with `colmap model_converter --output_type TXT`, which is read without pycolmap)"
+            ) from exc
+        pycolmap = None  # type: ignore[assignment]
     if not any((model_dir / f"points3D{ext}").is_file() for ext in (".bin", ".txt")):
         raise DataParserError(
             f"{model_dir} has cameras and images but no points3D.bin or points3D.txt: copy the model's points3D "
@@ -203,7 +209,7 @@ def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
     check_model_files(model_dir, SUPPORTED_CAMERA_MODELS)  # file, line and reason, before pycolmap's C++ reads it
     dropped_points: list[int] = []
     try:
-        reconstruction = pycolmap.Reconstruction(str(model_dir))
+        reconstruction = pycolmap.Reconstruction(str(model_dir)) if pycolmap else read_text_model(model_dir)
     except Exception as exc:
         bad = _images_with_non_finite_poses(model_dir / "images.txt")
         if bad:
