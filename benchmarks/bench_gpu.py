@@ -32,7 +32,8 @@ import torch  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_train import SHARED_DATA, TARGET_RATIO, make_config  # noqa: E402
 
-from kc_splatfacto.engine.trainer import PHASES, Trainer  # noqa: E402
+from kc_splatfacto.engine.metrics_log import MetricsWriter  # noqa: E402
+from kc_splatfacto.engine.trainer import PARAMETER_SCAN_EVERY, PHASES, Trainer  # noqa: E402
 
 
 def gpu_config(method, args, out, iterations):
@@ -70,13 +71,31 @@ def count_syncs_and_launches(run_steps, steps: int) -> dict:
     return {"syncs": syncs / steps, "launches": launches / steps}
 
 
+def ordinary_steps(first: int, steps: int) -> list[int]:
+    """``steps`` step numbers from ``first`` on that are no parameter-scan step (every PARAMETER_SCAN_EVERY)."""
+    out = []
+    step = first
+    while len(out) < steps:
+        if step % PARAMETER_SCAN_EVERY:
+            out.append(step)
+        step += 1
+    return out
+
+
 def trainer_syncs(trainer, args, steps: int = 5) -> dict:
-    """:func:`count_syncs_and_launches` of our trainer's next ``steps`` steps (NaN on the CPU: neither exists)."""
+    """:func:`count_syncs_and_launches` of ``steps`` ordinary training steps of our trainer (``train_iteration``: no
+    evaluation, checkpoint, logging or parameter scan among them; NaN on the CPU: neither count exists there).
+
+    The first campaign (2026-11-28) counted ``trainer.train()`` over 5 steps ending at its last step, whose evaluation
+    of every test image and checkpoint were counted with them: 54 and 25 "per step" on castle-P30 and fern-12."""
     if args.device != "cuda":
         return {"syncs": float("nan"), "launches": float("nan")}
-    first = trainer.config.max_num_iterations
-    trainer.start_step, trainer.config.max_num_iterations = first, first + steps
-    return count_syncs_and_launches(trainer.train, steps)
+    numbers = ordinary_steps(trainer.config.max_num_iterations, steps)
+    trainer._writer = MetricsWriter(trainer.run_dir / "metrics.jsonl")  # train() closed its own; steps write records
+    try:
+        return count_syncs_and_launches(lambda: [trainer.train_iteration(s) for s in numbers], steps)
+    finally:
+        trainer.writer.close()
 
 
 def timed_method(method, args, out, run_dir, n_gaussians):

@@ -9,6 +9,8 @@ import zipfile
 from pathlib import Path
 from types import SimpleNamespace
 
+import pytest
+
 from tests.conftest import PROJECT_ROOT, shared_scene
 
 SPEC = importlib.util.spec_from_file_location("gpu_campaign", PROJECT_ROOT / "benchmarks" / "gpu_campaign.py")
@@ -177,3 +179,40 @@ def test_a_phase_that_overruns_takes_its_time_from_the_later_phases_not_from_the
     phases["setup"] = phase("setup", 290.0)  # over by 180 s: nothing left for the suite; the packing still runs
     assert campaign.main([*argv[:-4], "--work", str(tmp_path / "work2"), "--out", str(tmp_path / "out2")]) == 124
     assert given == {"setup": 110, "pack": 15}
+
+
+def test_a_phase_past_its_budget_is_interrupted_so_pytest_can_name_its_failures(tmp_path):
+    """The first campaign's suite was killed at its budget and its log named none of its failures: a command past its
+    budget now gets SIGINT first (pytest then prints its summary and writes its XML) and SIGKILL only after a grace."""
+    ctx = campaign.Context(work=tmp_path, out=tmp_path / "out", call="c", dry=True)
+    waits = ("import signal, sys, time\n"
+             "def stop(*_):\n    print('summary: 2 failed', flush=True)\n    sys.exit(2)\n"
+             "signal.signal(signal.SIGINT, stop)\nprint('started', flush=True)\ntime.sleep(60)\n")
+    assert ctx.run("suite", [sys.executable, "-c", waits], campaign.INTERRUPT_GRACE_S + 3) == 124
+    log = ctx.log("suite").read_text()
+    assert "summary: 2 failed" in log and "[exit 124]" in log
+    deaf = "import signal, time\nsignal.signal(signal.SIGINT, signal.SIG_IGN)\ntime.sleep(60)\n"  # ignores SIGINT
+    assert ctx.run("deaf", [sys.executable, "-c", deaf], campaign.INTERRUPT_GRACE_S + 1) == 124
+
+
+def test_the_bench_counts_ordinary_training_steps_only(tmp_path, monkeypatch):
+    """bench_gpu's synchronisation/launch count covers training steps alone: the first campaign counted train()
+    through a run's last step, whose evaluation of every test image and checkpoint swelled the counts per step."""
+    from tests.training_utils import tiny_demo_config
+
+    spec = importlib.util.spec_from_file_location("bench_gpu", PROJECT_ROOT / "benchmarks" / "bench_gpu.py")
+    bench = importlib.util.module_from_spec(spec)
+    monkeypatch.setattr(sys, "path", list(sys.path))
+    spec.loader.exec_module(bench)
+    from kc_splatfacto.engine.trainer import PARAMETER_SCAN_EVERY, Trainer
+
+    trainer = Trainer(tiny_demo_config("splatfacto", tmp_path, iterations=PARAMETER_SCAN_EVERY - 2))
+    trainer.train()
+    counted: list[int] = []
+    original = trainer.train_iteration
+    monkeypatch.setattr(trainer, "train_iteration", lambda step: counted.append(step) or original(step))
+    for name in ("evaluate", "save_checkpoint", "_log_train"):
+        monkeypatch.setattr(trainer, name, lambda *a, name=name: pytest.fail(f"{name} inside the counted steps"))
+    monkeypatch.setattr(bench, "count_syncs_and_launches", lambda run_steps, steps: (run_steps(), {"steps": steps})[1])
+    assert bench.trainer_syncs(trainer, SimpleNamespace(device="cuda"), steps=5) == {"steps": 5}
+    assert counted == [98, 99, 101, 102, 103]  # 100 is a parameter-scan step
