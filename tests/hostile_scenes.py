@@ -9,6 +9,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 
 WIDTH, HEIGHT = 48, 32
 NUM_VIEWS = 6
@@ -106,8 +107,8 @@ def colmap_scene(root: Path, binary: bool = False) -> Path:
         track = f" {point_id} 0" if point_id <= NUM_VIEWS else ""
         points.append(f"{point_id} {p[0]} {p[1]} {p[2]} {c[0]} {c[1]} {c[2]} 0.5{track}")
     (model / "points3D.txt").write_text("\n".join(points) + "\n")
-    if binary:
-        import pycolmap
+    if binary:  # written by pycolmap: a test of a binary model skips where it is absent (the GPU campaign's image)
+        pycolmap = pytest.importorskip("pycolmap")
 
         reconstruction = pycolmap.Reconstruction(str(model))
         for name in ("cameras", "images", "points3D"):

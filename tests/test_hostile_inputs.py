@@ -411,8 +411,11 @@ def templates(tmp_path_factory):
     built = {
         "transforms": transforms_scene(base / "transforms"),
         "colmap": colmap_scene(base / "colmap"),
-        "colmap_bin": colmap_scene(base / "colmap_bin", binary=True),
     }
+    try:  # a binary model is written by pycolmap: where it is absent (the GPU image) only its cases skip
+        built["colmap_bin"] = colmap_scene(base / "colmap_bin", binary=True)
+    except pytest.skip.Exception:
+        pass
     spars3r = colmap_scene(base / "spars3r")
     (spars3r / "train_list.txt").write_text("0001.png\n0002.png\n0003.png\n0004.png\n0005.png\n")
     (spars3r / "test_list.txt").write_text("0000.png\n")
@@ -445,6 +448,8 @@ def prepare(case: Case, tmp_path: Path, templates, finished_run) -> Path:
         for old in (root / "run" / "nerfstudio_models").iterdir():
             assert old.name == "step-000000002.ckpt"
     else:
+        if case.scene not in templates:
+            pytest.skip(f"the {case.scene} scene could not be built here (pycolmap writes binary models)")
         shutil.copytree(templates[case.scene], root / "scene")
     return root
 

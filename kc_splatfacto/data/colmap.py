@@ -208,8 +208,9 @@ def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
         )
     check_model_files(model_dir, SUPPORTED_CAMERA_MODELS)  # file, line and reason, before pycolmap's C++ reads it
     dropped_points: list[int] = []
+    read = pycolmap.Reconstruction if pycolmap else read_text_model
     try:
-        reconstruction = pycolmap.Reconstruction(str(model_dir)) if pycolmap else read_text_model(model_dir)
+        reconstruction = read(str(model_dir))
     except Exception as exc:
         bad = _images_with_non_finite_poses(model_dir / "images.txt")
         if bad:
@@ -220,7 +221,7 @@ def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
         dropped_points = _non_finite_point_lines(model_dir / "points3D.txt")
         if not dropped_points:
             raise DataParserError(f"could not read the COLMAP model in {model_dir}: {exc}") from exc
-        reconstruction = _read_without_point_lines(pycolmap, model_dir, dropped_points)
+        reconstruction = _read_without_point_lines(read, model_dir, dropped_points)
     cameras = {cid: _camera_from_pycolmap(cid, cam, model_dir) for cid, cam in reconstruction.cameras.items()}
     for cid, camera in cameras.items():
         check_principal_point(camera, f"camera {cid} in {model_file(model_dir, 'cameras')}")
@@ -371,7 +372,7 @@ def _non_finite_point_lines(points_txt: Path) -> list[int]:
     return bad
 
 
-def _read_without_point_lines(pycolmap, model_dir: Path, skip_lines: list[int]):
+def _read_without_point_lines(read, model_dir: Path, skip_lines: list[int]):
     """The text model of ``model_dir`` read with the ``points3D.txt`` lines ``skip_lines`` left out (a temp copy)."""
     skip = set(skip_lines)
     with tempfile.TemporaryDirectory(prefix="kc_colmap_") as tmp:
@@ -385,7 +386,7 @@ def _read_without_point_lines(pycolmap, model_dir: Path, skip_lines: list[int]):
         ]
         (Path(tmp) / "points3D.txt").write_text("\n".join(kept) + "\n")
         try:
-            return pycolmap.Reconstruction(tmp)
+            return read(tmp)
         except Exception as exc:
             raise DataParserError(f"could not read the COLMAP model in {model_dir}: {exc}") from exc
 

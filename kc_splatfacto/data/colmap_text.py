@@ -3,7 +3,8 @@
 pycolmap is the reader (:func:`kc_splatfacto.data.colmap.read_colmap_model`); this one serves where pycolmap cannot
 be installed: a GPU image whose package budget leaves it out (pycolmap's wheel is 38 MB; the GPU campaign of issue 36
 carries at most 64 MiB per call). It returns the few attributes of ``pycolmap.Reconstruction`` that
-``read_colmap_model`` uses, so both paths go through the same checks. Cameras, poses and points are the same as
+``read_colmap_model`` uses, and fails where pycolmap's text reader fails (a non-finite pose or point), so both paths
+go through the same checks and messages. Cameras, poses and points are the same as
 pycolmap's; the points come in the file's order, pycolmap's in its hash map's (the seed Gaussians' order, so a run
 from either reader starts from the same Gaussians in another order: not bit for bit the same run). The files are checked line by line first
 (:func:`kc_splatfacto.data.colmap_files.check_model_files`), so parsing here assumes well-formed lines.
@@ -43,8 +44,9 @@ class TextRigid:
     translation: np.ndarray
 
     def matrix(self) -> np.ndarray:
-        """[3, 4] world-to-camera [R | t], R of the normalized quaternion."""
-        x, y, z, w = self.rotation.quat / np.linalg.norm(self.rotation.quat)
+        """[3, 4] world-to-camera [R | t], R of the quaternion as written (Eigen's formula, as pycolmap: no
+        normalization, so a zero quaternion gives a finite matrix and the caller's norm check names it)."""
+        x, y, z, w = self.rotation.quat
         r = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
                       [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
                       [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
@@ -100,6 +102,8 @@ def read_images_txt(path: Path) -> dict[int, TextImage]:
             continue
         fields = lines[i].split()
         qw, qx, qy, qz, tx, ty, tz = (float(v) for v in fields[1:8])
+        if not np.isfinite([qw, qx, qy, qz, tx, ty, tz]).all():  # pycolmap's text reader fails here too
+            raise ValueError(f"{path}: image {fields[0]} has a non-finite pose")
         pose = TextRigid(TextRotation(np.array([qx, qy, qz, qw])), np.array([tx, ty, tz]))
         images[int(fields[0])] = TextImage(int(fields[0]), " ".join(fields[9:]), int(fields[8]), pose)
         i += 2
@@ -114,12 +118,15 @@ def read_points3d_txt(path: Path) -> dict[int, TextPoint]:
     for line in _content_lines(path):
         if line:
             fields = line.split()
-            points[int(fields[0])] = TextPoint(np.array([float(v) for v in fields[1:4]]),
+            xyz = [float(v) for v in fields[1:4]]
+            if not np.isfinite(xyz).all():  # as pycolmap's reader: the caller reads again without these lines
+                raise ValueError(f"{path}: point {fields[0]} has non-finite coordinates")
+            points[int(fields[0])] = TextPoint(np.array(xyz),
                                                np.array([int(v) for v in fields[4:7]], np.uint8))
     return points
 
 
-def read_text_model(model_dir: Path) -> TextReconstruction:
+def read_text_model(model_dir: str | Path) -> TextReconstruction:
     """The text model in ``model_dir`` (checked beforehand by ``check_model_files``)."""
     model_dir = Path(model_dir)
     return TextReconstruction(read_cameras_txt(model_dir / "cameras.txt"), read_images_txt(model_dir / "images.txt"),

@@ -14,6 +14,8 @@ from kc_splatfacto.cli import process_data as kc_process_data
 from kc_splatfacto.data.sfm import ProcessImagesConfig, process_images, sparse_split
 from tests.conftest import shared_scene
 
+pytest.importorskip("pycolmap", reason="kc-process-data's SfM is COLMAP through pycolmap")
+
 #: fern is forward-facing with short baselines: what the recovered relative poses must reach against LLFF's
 #: (measured: rotation max 0.19 deg; direction median 0.6, 90th percentile 1.3, max 3.3 deg, 1.1 over the longer half
 #: of the baselines). A translation direction is ill-conditioned for the closest pairs (0.7 units apart where the
