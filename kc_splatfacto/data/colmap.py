@@ -44,7 +44,7 @@ from kc_splatfacto.data.base import (
     scene_scale_of,
 )
 from kc_splatfacto.data.colmap_files import check_model_files
-from kc_splatfacto.data.colmap_text import read_text_model
+from kc_splatfacto.data.colmap_text import quaternion_rotation, read_text_model
 from kc_splatfacto.data.images import (
     derived_is_fresh,
     derived_root,
@@ -330,14 +330,7 @@ def _unit_rotation(quat_xyzw: np.ndarray, image, model_dir: Path) -> np.ndarray:
             f"{at}: the rotation quaternion of image '{image.name}' has norm {norm:.6g}, not 1 (tolerance "
             f"{QUATERNION_NORM_TOLERANCE:g}): the pose is not a rotation; fix QW QX QY QZ of that image"
         )
-    x, y, z, w = quat_xyzw / norm
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    return quaternion_rotation(quat_xyzw / norm)
 
 
 def _images_txt_line(images_txt: Path, image_id: int) -> int | None:

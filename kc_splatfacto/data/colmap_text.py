@@ -4,9 +4,9 @@ pycolmap is the reader (:func:`kc_splatfacto.data.colmap.read_colmap_model`); th
 be installed: a GPU image whose package budget leaves it out (pycolmap's wheel is 38 MB; the GPU campaign of issue 36
 carries at most 64 MiB per call). It returns the few attributes of ``pycolmap.Reconstruction`` that
 ``read_colmap_model`` uses, and fails where pycolmap's text reader fails (a non-finite pose or point), so both paths
-go through the same checks and messages. Cameras, poses and points are the same as
-pycolmap's; the points come in the file's order, pycolmap's in its hash map's (the seed Gaussians' order, so a run
-from either reader starts from the same Gaussians in another order: not bit for bit the same run). The files are checked line by line first
+go through the same checks and messages. Cameras, poses and points are the same as pycolmap's; the points come in
+the file's order, pycolmap's in its hash map's (the seed Gaussians' order, so a run from either reader starts from the
+same Gaussians in another order: not bit for bit the same run). The files are checked line by line first
 (:func:`kc_splatfacto.data.colmap_files.check_model_files`), so parsing here assumes well-formed lines.
 Tested against pycolmap on every shared scene (``tests/data/test_colmap_text.py``).
 """
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kc_splatfacto.data.base import read_text_file
+from kc_splatfacto.data.colmap_files import _data_lines
 
 
 @dataclass(frozen=True)
@@ -46,11 +46,19 @@ class TextRigid:
     def matrix(self) -> np.ndarray:
         """[3, 4] world-to-camera [R | t], R of the quaternion as written (Eigen's formula, as pycolmap: no
         normalization, so a zero quaternion gives a finite matrix and the caller's norm check names it)."""
-        x, y, z, w = self.rotation.quat
-        r = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-        return np.concatenate([r, self.translation[:, None]], axis=1)
+        return np.concatenate([quaternion_rotation(self.rotation.quat), self.translation[:, None]], axis=1)
+
+
+def quaternion_rotation(quat_xyzw: np.ndarray) -> np.ndarray:
+    """[3, 3] rotation matrix of a quaternion [4] in pycolmap's x, y, z, w order, as given (normalize it first)."""
+    x, y, z, w = quat_xyzw
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 @dataclass(frozen=True)
@@ -78,7 +86,7 @@ class TextReconstruction:
 
 def _content_lines(path: Path) -> list[str]:
     """Every line that is not a comment, stripped (empty lines kept: an image's 2D-points line may be empty)."""
-    return [line.strip() for line in read_text_file(path).splitlines() if not line.startswith("#")]
+    return [line for _, line in _data_lines(path) if not line.startswith("#")]
 
 
 def read_cameras_txt(path: Path) -> dict[int, TextCamera]:
