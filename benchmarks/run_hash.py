@@ -85,6 +85,10 @@ def main() -> int:
         trainer = Trainer(config)
         trainer.train()
         seconds = time.perf_counter() - t0
+        if trainer.interrupted:  # a part-run's state hashed under the asked step count would be a wrong reference
+            print(f"{args.method}: stopped before step {args.steps} (Ctrl-C or SIGTERM): no hash; run it again",
+                  file=sys.stderr)
+            return 130
         print(f"{args.method} {args.steps} steps {torch.get_num_threads()} threads: {state_hash(trainer)} "
               f"({trainer.model.num_points} Gaussians, {seconds:.0f} s) on {machine_signature()['kind']}", flush=True)
     return 0
