@@ -32,6 +32,7 @@ from pathlib import Path  # noqa: E402
 
 import torch  # noqa: E402
 
+from kc_splatfacto.cli.main import INTERRUPTED_EXIT  # noqa: E402
 from kc_splatfacto.engine.trainer import Trainer  # noqa: E402
 from kc_splatfacto.registry import discover_methods  # noqa: E402
 from kc_splatfacto.study.machine import machine_signature  # noqa: E402
@@ -88,7 +89,7 @@ def main() -> int:
         if trainer.interrupted:  # a part-run's state hashed under the asked step count would be a wrong reference
             print(f"{args.method}: stopped before step {args.steps} (Ctrl-C or SIGTERM): no hash; run it again",
                   file=sys.stderr)
-            return 130
+            return INTERRUPTED_EXIT
         print(f"{args.method} {args.steps} steps {torch.get_num_threads()} threads: {state_hash(trainer)} "
               f"({trainer.model.num_points} Gaussians, {seconds:.0f} s) on {machine_signature()['kind']}", flush=True)
     return 0

@@ -47,7 +47,7 @@ from kc_splatfacto.analysis.along_training import write_along_training
 from kc_splatfacto.analysis.diagnostics import plot_kurtosis_gap_comparison
 from kc_splatfacto.analysis.report import eval_rows, plot_gradient_shares, write_report
 from kc_splatfacto.atomic import atomic_write_text
-from kc_splatfacto.cli.main import check_folder_can_hold, did_you_mean, path_flag, run_cli
+from kc_splatfacto.cli.main import INTERRUPTED_EXIT, check_folder_can_hold, did_you_mean, path_flag, run_cli
 from kc_splatfacto.cli.train import override_config
 from kc_splatfacto.data.detect import AutoDataParserConfig
 from kc_splatfacto.engine.metrics_log import read_metrics
@@ -496,7 +496,7 @@ def main(argv: list[str]) -> int:
     except StudyInterrupted:
         print("[kc-bench] stopped: the finished runs and their report are kept; the same command with --resume "
               "continues", file=sys.stderr, flush=True)
-        return 130
+        return INTERRUPTED_EXIT
     for name, path in paths.items():
         print(f"{name}: {path}")
     return 0
