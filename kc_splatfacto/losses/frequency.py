@@ -38,6 +38,8 @@ from typing import Any, Literal
 import torch
 from torch import Tensor, nn
 
+from kc_splatfacto import backend
+from kc_splatfacto.losses import _fused_frequency as fused
 from kc_splatfacto.losses._frequency_autograd import Moments, level_moments, weighted_band_l1
 from kc_splatfacto.losses.wavelets import WaveletCoeffs, dwt2, supported_levels
 from kc_splatfacto.settings import check_settings, integer, real, setting
@@ -247,13 +249,19 @@ class WaveletBands:
     wavelet_mode: str
     cbc_correlation: bool
     image_shape: tuple[int, ...]
+    image: Tensor | None = dataclasses.field(default=None, repr=False, compare=False)
+    """the (detached) image of a target prepared off the compiled CPU kernels: the fused path computes its side of
+    the terms with the same operations as the render's, so equal images give exactly zero"""
+    slot_targets: dict[Any, fused.SlotTarget] = dataclasses.field(default_factory=dict, repr=False, compare=False)
+    """these bands in the fused path's slot layout, per plan and L1 weights (filled by FrequencyLoss on first use)"""
 
     def to(self, *args, **kwargs) -> WaveletBands:
         def move(x: Tensor | None) -> Tensor | None:
             return None if x is None else x.to(*args, **kwargs)
 
         return dataclasses.replace(self, coeffs=self.coeffs.to(*args, **kwargs), kurtosis=move(self.kurtosis),
-                                   spread=move(self.spread), l_cov=move(self.l_cov))
+                                   spread=move(self.spread), l_cov=move(self.l_cov), image=move(self.image),
+                                   slot_targets={})
 
     @property
     def device(self) -> torch.device:
@@ -304,8 +312,11 @@ def prepare_target(
     (raises ValueError on NaN/Inf naming 'gt')."""
     _check_image(gt, "gt")
     with torch.no_grad():
-        return wavelet_bands(gt.detach(), wave, wavelet_levels, wavelet_mode, cbc_correlation,
-                             warn_dropped_levels=warn_dropped_levels)
+        bands = wavelet_bands(gt.detach(), wave, wavelet_levels, wavelet_mode, cbc_correlation,
+                              warn_dropped_levels=warn_dropped_levels)
+    if not backend.compiled(gt):
+        bands.image = gt.detach()
+    return bands
 
 
 def _check_pair(pred: WaveletBands, gt: WaveletBands, with_correlation: bool = False) -> WaveletBands:
@@ -427,6 +438,10 @@ class FrequencyLoss(nn.Module):
         #: forward raises ValueError on a NaN/Inf ``pred`` (one host synchronisation on CUDA); a training loop that
         #: checks its whole step once after backward (kc-train's trainer) sets it False
         self.check_finite = True
+        #: off the compiled CPU kernels (a GPU), the supervised terms in one autograd Function of few operations
+        #: (``_fused_frequency``); False: level by level, as on the CPU (the tests compare the two)
+        self.fused = True
+        self._l1_weights: dict[Any, Tensor] = {}
 
     @property
     def active(self) -> bool:
@@ -476,6 +491,10 @@ class FrequencyLoss(nn.Module):
             raise ValueError(
                 f"pred {tuple(pred.shape)} and target {tuple(target.image_shape)} must have the same [B, C, H, W]"
             )
+        if self._takes_fused_path(pred):
+            fused_losses = self._fused_forward(pred, target)
+            if fused_losses is not None:
+                return fused_losses
         bands = self.bands(pred, kurtosis=c.kc_weight > 0, covariance=c.cbc_weight > 0, check_finite=False)
         losses: dict[str, Tensor] = {}
         if c.wavelet_weight > 0:
@@ -485,3 +504,51 @@ class FrequencyLoss(nn.Module):
         if c.cbc_weight > 0:
             losses["cbc_loss"] = c.cbc_weight * cbc_loss(bands, target, c.cbc_supervised)
         return losses
+
+    def _takes_fused_path(self, pred: Tensor) -> bool:
+        """The fused Function serves the supervised covariance terms off the compiled CPU kernels."""
+        c = self.config
+        return (self.fused and not backend.compiled(pred) and (c.kc_weight == 0 or c.kc_supervised)
+                and (c.cbc_weight == 0 or (c.cbc_supervised and not c.cbc_correlation)))
+
+    def _fused_forward(self, pred: Tensor, target: WaveletBands) -> dict[str, Tensor] | None:
+        """The active terms through :class:`~._fused_frequency.FusedFrequencyTerms`, or None when the image supports
+        no level (the level-by-level path's zero loss then applies)."""
+        c = self.config
+        image = fused.as_channels_last(pred.to(_compute_dtype(pred.dtype)))
+        plan = fused.plan_for(pred.shape[-2:], c.wave, c.wavelet_mode, c.wavelet_levels, image)
+        if plan is None:
+            return None
+        settings = ("wave", "wavelet_levels", "wavelet_mode") + (("cbc_correlation",) if c.cbc_weight > 0 else ())
+        if any(getattr(target, name) != getattr(c, name) for name in settings):
+            raise ValueError("the target's bands were computed with other settings than this loss's: prepare the "
+                             "target with the loss's own settings (FrequencyLoss.prepare_target)")
+        if target.device != image.device or target.dtype != image.dtype:
+            target = target.to(device=image.device, dtype=image.dtype)
+        planes = image.shape[-1]
+        weights = None
+        if c.wavelet_weight > 0:
+            key = (id(plan), planes)
+            weights = self._l1_weights.get(key)
+            if weights is None:
+                per_level = level_weights(plan.levels, c.wavelet_weighting)
+                weights = self._l1_weights[key] = fused.l1_slot_weights(plan, per_level, c.wavelet_weight, planes)
+        slot_key = (id(plan), c.wavelet_weight, c.wavelet_weighting)
+        slots = target.slot_targets.get(slot_key)
+        if slots is None:
+            if target.image is not None:
+                gt = fused.as_channels_last(target.image.to(image.dtype))
+                slots = fused.slot_target_of_image(gt, plan, weights)
+            else:
+                slots = fused.slot_target(target.coeffs.details, target.kurtosis, target.spread, target.l_cov, plan,
+                                          weights)
+            target.slot_targets[slot_key] = slots
+        wavelet, kc, cbc = fused.FusedFrequencyTerms.apply(image, plan, slots, weights, c.kc_weight, c.cbc_weight)
+        terms = {"wavelet_loss": wavelet, "kc_loss": kc, "cbc_loss": cbc}
+        return {name: terms[name] for name, weight in zip(terms, (c.wavelet_weight, c.kc_weight, c.cbc_weight))
+                if weight > 0}
+
+
+def _compute_dtype(dtype: torch.dtype) -> torch.dtype:
+    """float32 for half precision (the detail coefficients' 4th powers need it, as in ``wavelets.dwt2``)."""
+    return torch.float32 if dtype in (torch.float16, torch.bfloat16) else dtype

@@ -1,0 +1,175 @@
+"""The fused frequency terms (the torch path a GPU runs): the band slots against PyWavelets, the terms and their
+gradient against the level-by-level path (itself held to PyWavelets and scipy in test_frequency.py) and against
+finite differences, and the stiff cases of docs/stability.md."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import pywt
+import torch
+
+from kc_splatfacto import backend
+from kc_splatfacto.losses import FrequencyLoss
+from kc_splatfacto.losses import _fused_frequency as fused
+from tests.losses.test_frequency import blur, load_image
+
+TERMS = ("wavelet_loss", "kc_loss", "cbc_loss")
+
+
+@pytest.mark.parametrize("mode", ["symmetric", "reflect", "zero", "periodization"])
+@pytest.mark.parametrize("wave,levels,size", [("db3", 3, (45, 61)), ("haar", 4, (32, 40)), ("db2", 2, (17, 30))])
+def test_band_slots_are_pywavelets_coefficients_with_zeros_around(mode, wave, levels, size):
+    rng = np.random.default_rng(0)
+    image = rng.random((2, 3, *size))
+    x = torch.from_numpy(image)
+    plan = fused.plan_for(size, wave, mode, levels, x)
+    slots = fused.band_slots(fused.as_channels_last(x), plan).numpy()  # [K, h, w, N]
+    assert plan.levels == levels
+    for n in range(6):
+        coefficients = pywt.wavedec2(image.reshape(6, *size)[n], wave, mode=mode, level=levels)
+        np.testing.assert_allclose(slots[-1, : coefficients[0].shape[0], : coefficients[0].shape[1], n],
+                                   coefficients[0], rtol=0, atol=1e-12)
+        for j in range(1, levels + 1):
+            for o, band in enumerate(coefficients[-j]):  # (cH, cV, cD) of level j, finest first from the end
+                slot = slots[o * levels + j - 1, ..., n]
+                np.testing.assert_allclose(slot[: band.shape[0], : band.shape[1]], band, rtol=0, atol=1e-12)
+                around = slot.copy()
+                around[: band.shape[0], : band.shape[1]] = 0.0
+                assert not around.any()
+
+
+def terms_and_grad(loss: FrequencyLoss, pred: torch.Tensor, gt: torch.Tensor, fused_path: bool):
+    loss.fused = fused_path
+    with backend.torch_reference():
+        x = pred.clone().requires_grad_(True)
+        terms = loss(x, loss.prepare_target(gt))
+        sum(terms.values()).backward()
+    return {k: v.detach() for k, v in terms.items()}, x.grad
+
+
+SETTINGS = [
+    {},
+    {"wavelet_mode": "zero"},
+    {"wavelet_mode": "periodization", "wave": "haar", "wavelet_levels": 4},
+    {"wavelet_mode": "reflect", "wavelet_weighting": "fine"},
+    {"kc_weight": 0.0},
+    {"cbc_weight": 0.0, "wavelet_weighting": "uniform"},
+    {"wavelet_weight": 0.0},
+]
+
+
+@pytest.mark.parametrize("settings", SETTINGS)
+@pytest.mark.parametrize("size", [(40, 56), (45, 61)])
+def test_fused_terms_and_gradient_equal_the_level_by_level_path_in_float64(settings, size):
+    g = torch.Generator().manual_seed(1)
+    gt = torch.rand(2, 3, *size, generator=g, dtype=torch.float64) ** 3
+    pred = torch.rand(2, 3, *size, generator=g, dtype=torch.float64) ** 2
+    loss = FrequencyLoss(**{"wavelet_weight": 1.0, "kc_weight": 1.0, "cbc_weight": 1e3, **settings})
+    reference, reference_grad = terms_and_grad(loss, pred, gt, fused_path=False)
+    terms, grad = terms_and_grad(loss, pred, gt, fused_path=True)
+    assert set(terms) == set(reference)
+    for key in reference:
+        torch.testing.assert_close(terms[key], reference[key], rtol=1e-11, atol=0)
+    torch.testing.assert_close(grad, reference_grad, rtol=1e-9, atol=1e-12 * float(reference_grad.abs().max()))
+
+
+def test_fused_terms_on_a_real_photo_in_float32(castle_p30):
+    # training's precision and a render-like blurred prediction (small detail bands: the kurtosis's sensitive case)
+    gt = load_image(castle_p30).float()
+    pred = blur(gt, sigma=1.0) + 0.01 * torch.randn(gt.shape, generator=torch.Generator().manual_seed(3))
+    loss = FrequencyLoss()  # the paper's weights
+    reference, reference_grad = terms_and_grad(loss, pred, gt, fused_path=False)
+    terms, grad = terms_and_grad(loss, pred, gt, fused_path=True)
+    for key in TERMS:
+        torch.testing.assert_close(terms[key], reference[key], rtol=2e-5, atol=0)
+    scale = reference_grad.abs().max()
+    torch.testing.assert_close(grad / scale, reference_grad / scale, rtol=0, atol=1e-5)
+
+
+def test_fused_module_gradient_matches_finite_differences():
+    g = torch.Generator().manual_seed(2)
+    gt = torch.rand(2, 1, 20, 21, generator=g, dtype=torch.float64)
+    pred = torch.rand(2, 1, 20, 21, generator=g, dtype=torch.float64, requires_grad=True)
+    loss = FrequencyLoss(wavelet_weight=1.0, kc_weight=1.0, cbc_weight=1e4, wavelet_levels=2)
+    with backend.torch_reference():
+        target = loss.prepare_target(gt)
+        assert torch.autograd.gradcheck(lambda p: torch.stack(list(loss(p, target).values())), (pred,), eps=1e-6,
+                                        atol=1e-6, rtol=1e-5, fast_mode=True)
+
+
+def test_the_model_layout_and_a_half_precision_render_take_the_fused_path(monkeypatch):
+    calls = []
+    original = fused.FusedFrequencyTerms.apply
+    monkeypatch.setattr(fused.FusedFrequencyTerms, "apply", lambda *args: calls.append(1) or original(*args))
+    g = torch.Generator().manual_seed(5)
+    render = torch.rand(48, 64, 3, generator=g)  # [H, W, 3] as the rasterizer returns it
+    gt = torch.rand(1, 3, 48, 64, generator=g)
+    loss = FrequencyLoss()
+    with backend.torch_reference():
+        target = loss.prepare_target(gt)
+        full = loss(render.permute(2, 0, 1)[None], target)
+        half = loss(render.half().permute(2, 0, 1)[None], target)
+    assert len(calls) == 2
+    loss.fused = False
+    with backend.torch_reference():
+        reference = loss(render.permute(2, 0, 1)[None], target)
+    for key in TERMS:
+        torch.testing.assert_close(full[key], reference[key], rtol=1e-5, atol=0)
+        torch.testing.assert_close(half[key], reference[key], rtol=5e-2, atol=0)  # the render rounded to float16
+
+
+def test_the_compiled_cpu_path_and_the_other_variants_keep_the_level_by_level_path(monkeypatch):
+    calls = []
+    monkeypatch.setattr(fused.FusedFrequencyTerms, "apply", lambda *args: calls.append(1))
+    pred, gt = torch.rand(1, 3, 40, 40), torch.rand(1, 3, 40, 40)
+    FrequencyLoss()(pred, FrequencyLoss().prepare_target(gt))  # the CPU's compiled kernels
+    with backend.torch_reference():
+        for settings in ({"kc_supervised": False}, {"cbc_supervised": False}, {"cbc_correlation": True}):
+            loss = FrequencyLoss(**settings)
+            loss(pred, loss.prepare_target(gt))
+    assert calls == []
+
+
+def scaled(image: torch.Tensor, factor: float) -> torch.Tensor:
+    return image * factor
+
+
+@pytest.mark.parametrize("case", ["constant", "black", "saturated", "equal", "bright x1e4", "dim x1e-6", "tiny"])
+def test_stiff_cases_give_finite_terms_equal_to_the_level_by_level_path(castle_p30, case):
+    photo = load_image(castle_p30, size=(96, 64)).float()
+    pairs = {
+        "constant": (torch.full_like(photo, 0.5), photo),
+        "black": (torch.zeros_like(photo), torch.zeros_like(photo)),
+        "saturated": (torch.ones_like(photo), photo.clamp(0.5, 1.0)),
+        "equal": (photo, photo),
+        "bright x1e4": (scaled(blur(photo), 1e4), scaled(photo, 1e4)),
+        "dim x1e-6": (scaled(blur(photo), 1e-6), scaled(photo, 1e-6)),
+        "tiny": (photo[..., :9, :11], blur(photo)[..., :9, :11]),  # too small for a db3 level: no band
+    }
+    pred, gt = pairs[case]
+    loss = FrequencyLoss(wavelet_weight=1.0, kc_weight=1.0, cbc_weight=1.0)
+    with pytest.warns(UserWarning) if case == "tiny" else _no_warning():
+        terms, grad = terms_and_grad(loss, pred, gt, fused_path=True)
+    reference, reference_grad = terms_and_grad(loss, pred, gt, fused_path=False)
+    for key in TERMS:
+        assert bool(torch.isfinite(terms[key])), (key, terms[key])
+        torch.testing.assert_close(terms[key], reference[key], rtol=1e-4, atol=1e-6)
+    assert bool(torch.isfinite(grad).all())
+    if case in ("constant", "saturated"):
+        # every band of the constant render is rounding noise of kurtosis ~-3: which band holds the spread's maximum
+        # (and so takes its gradient) is decided by rounding, differently in each path; the terms agree
+        return
+    scale = max(float(reference_grad.abs().max()), 1e-30)
+    torch.testing.assert_close(grad / scale, reference_grad / scale, rtol=0, atol=1e-4)
+    if case == "equal":
+        assert all(float(terms[key]) == 0.0 for key in TERMS)
+        assert not grad.any()
+
+
+class _no_warning:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
