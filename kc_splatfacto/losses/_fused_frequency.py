@@ -20,7 +20,9 @@ variants take the level-by-level path.
 
 from __future__ import annotations
 
+import contextlib
 import functools
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -79,16 +81,18 @@ def _axis_operators(n: int, wave: str, mode: str, levels: int) -> tuple[list[np.
 class BandPlan:
     """The constants of one image size and DWT: the band operators and the per-slot counts and weights.
 
-    row_ops [K, h, H]; col_ops [K * w, W] (slot k's rows at k * w); mask [3J, h, w, 1] (1 inside each detail band);
-    inv_count [3J, 1, 1, 1] (1 / the band's pixel count P_j); count [3J, 1] (P_j); two_over_count and
-    four_over_count [3J, 1, 1, 1] (2 / P_j, 4 / P_j: the moments' derivatives); pair_count [J, 1] (max(P_j - 1, 1):
-    numpy.cov's divisor); plus_minus [2, 1] (+1, -1); total (the coefficient count of every band and the
-    approximation, the image power's divisor); sizes [(h_j, w_j)] per level.
+    row_ops [K, h, H]: slot k's operator along H; col_ops [W, C w]: the C = 2J distinct operators along W (the
+    composed low- and high-passes of each level), side by side and transposed; col_of_slot [K] (long): which of them
+    slot k uses; mask [3J, h, 1, w] (1 inside each detail band); inv_count [3J, 1, 1, 1] (1 / the band's pixel count
+    P_j); count [3J, 1] (P_j); two_over_count and four_over_count [3J, 1, 1, 1] (2 / P_j, 4 / P_j: the moments'
+    derivatives); pair_count [J, 1] (max(P_j - 1, 1): numpy.cov's divisor); plus_minus [2, 1] (+1, -1); total (the
+    coefficient count of every band and the approximation, the image power's divisor); sizes [(h_j, w_j)] per level.
     """
 
     levels: int
     row_ops: Tensor
     col_ops: Tensor
+    col_of_slot: Tensor
     mask: Tensor
     inv_count: Tensor
     count: Tensor
@@ -106,7 +110,7 @@ class BandPlan:
     @property
     def shape(self) -> tuple[int, int]:
         """(h, w): a slot's size (the finest level's band)."""
-        return self.row_ops.shape[1], self.col_ops.shape[0] // self.slots
+        return self.row_ops.shape[1], self.col_ops.shape[1] // (2 * self.levels)
 
 
 @functools.lru_cache(maxsize=16)
@@ -116,25 +120,27 @@ def band_plan(height: int, width: int, wave: str, mode: str, levels: int, dtype:
     the resolution schedule uses three sizes a run."""
     lows_h, highs_h = _axis_operators(height, wave, mode, levels)
     lows_w, highs_w = _axis_operators(width, wave, mode, levels)
-    rows, cols = [], []
-    for pick_h, pick_w in ((highs_h, lows_w), (lows_h, highs_w), (highs_h, highs_w)):  # cH ('da'), cV, cD
+    distinct_cols = lows_w + highs_w  # column operator c: level c + 1's low-pass, or level c - J + 1's high-pass
+    rows, col_of_slot = [], []
+    for pick_h, col_offset in ((highs_h, 0), (lows_h, levels), (highs_h, levels)):  # cH ('da'), cV ('ad'), cD
         rows += pick_h
-        cols += pick_w
-    rows.append(lows_h[-1])
-    cols.append(lows_w[-1])
-    h, w = max(r.shape[0] for r in rows), max(c.shape[0] for c in cols)
+        col_of_slot += [col_offset + j for j in range(levels)]
+    rows.append(lows_h[-1])  # the approximation: low-pass along both axes
+    col_of_slot.append(levels - 1)
+    h, w = max(r.shape[0] for r in rows), max(c.shape[0] for c in distinct_cols)
     row_ops = np.zeros((len(rows), h, height))
-    col_ops = np.zeros((len(cols), w, width))
-    for k, (r, c) in enumerate(zip(rows, cols)):
+    for k, r in enumerate(rows):
         row_ops[k, : r.shape[0]] = r
-        col_ops[k, : c.shape[0]] = c
+    col_ops = np.zeros((len(distinct_cols), w, width))
+    for c, op in enumerate(distinct_cols):
+        col_ops[c, : op.shape[0]] = op
     detail = 3 * levels
     sizes = tuple((highs_h[j].shape[0], lows_w[j].shape[0]) for j in range(levels))
-    mask = np.zeros((detail, h, w, 1))
+    mask = np.zeros((detail, h, 1, w))
     count = np.zeros(detail)
     for k in range(detail):
         hj, wj = sizes[k % levels]
-        mask[k, :hj, :wj] = 1.0
+        mask[k, :hj, :, :wj] = 1.0
         count[k] = hj * wj
     total = int(count.sum()) + lows_h[-1].shape[0] * lows_w[-1].shape[0]
 
@@ -143,7 +149,8 @@ def band_plan(height: int, width: int, wave: str, mode: str, levels: int, dtype:
 
     per_slot = count.reshape(detail, 1, 1, 1)
     return BandPlan(
-        levels, as_tensor(row_ops), as_tensor(col_ops.reshape(-1, width)), as_tensor(mask), as_tensor(1.0 / per_slot),
+        levels, as_tensor(row_ops), as_tensor(col_ops.reshape(-1, width).T.copy()),
+        torch.as_tensor(col_of_slot, dtype=torch.long, device=device), as_tensor(mask), as_tensor(1.0 / per_slot),
         as_tensor(count).reshape(detail, 1), as_tensor(2.0 / per_slot), as_tensor(4.0 / per_slot),
         as_tensor(np.maximum(count[:levels] - 1.0, 1.0)).reshape(levels, 1), as_tensor(np.array([[1.0], [-1.0]])),
         total, sizes,
@@ -162,27 +169,46 @@ def plan_for(image_hw: tuple[int, int], wave: str, mode: str, levels: int, like:
 # --------------------------------------------------------------------------------------------------- the bands
 
 
-def as_channels_last(image: Tensor) -> Tensor:
-    """[B, C, H, W] -> [H, W, B * C] (a view for a render [1, C, H, W] permuted from [H, W, C], else a copy)."""
+def as_planes(image: Tensor) -> Tensor:
+    """[B, C, H, W] -> [N, H, W], N = B * C (a view when contiguous; a render permuted from [H, W, C] is copied)."""
     batch, channels, height, width = image.shape
-    return image.permute(2, 3, 0, 1).reshape(height, width, batch * channels)
+    return image.reshape(batch * channels, height, width)
+
+
+@contextlib.contextmanager
+def exact_matmul(device: torch.device) -> Iterator[None]:
+    """Full float32 matrix products on CUDA within the block, whatever the caller chose: TF32 (10 mantissa bits) would
+    move the bands' fourth moments by ~1e-3 relative, far beyond float32 rounding."""
+    if device.type != "cuda" or not torch.backends.cuda.matmul.allow_tf32:
+        yield
+        return
+    torch.backends.cuda.matmul.allow_tf32 = False
+    try:
+        yield
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = True
 
 
 def band_slots(image: Tensor, plan: BandPlan) -> Tensor:
-    """Every band of image [H, W, N] in its slot: [K, h, w, N] (two batched matrix products)."""
-    height, width, planes = image.shape
+    """Every band of image [N, H, W] in its slot: [K, h, N, w]. Two well-shaped matrix products (one GEMM of all
+    the image's rows against the 2J distinct column operators, then one per slot along H), a gather between."""
+    planes, height, width = image.shape
     h, w = plan.shape
-    along_w = torch.bmm(plan.col_ops.expand(height, -1, -1), image)  # [H, K * w, N]
-    stacked = along_w.view(height, plan.slots, w * planes).transpose(0, 1)  # [K, H, w * N], no copy
-    return torch.bmm(plan.row_ops, stacked).view(plan.slots, h, w, planes)
+    with exact_matmul(image.device):
+        along_w = torch.mm(image.reshape(planes * height, width), plan.col_ops)  # [N H, C w]
+        per_slot = along_w.view(planes, height, -1, w).permute(2, 1, 0, 3).index_select(0, plan.col_of_slot)
+        slots = torch.bmm(plan.row_ops, per_slot.view(plan.slots, height, planes * w))
+    return slots.view(plan.slots, h, planes, w)
 
 
 def band_slots_adjoint(grad: Tensor, plan: BandPlan, height: int, width: int) -> Tensor:
-    """The transpose of :func:`band_slots` for the detail slots: grad [3J, h, w, N] -> [H, W, N]."""
-    detail, h, w, planes = grad.shape
-    along_h = torch.bmm(plan.row_ops[:detail].transpose(1, 2), grad.view(detail, h, w * planes))  # [3J, H, w * N]
-    along_h = along_h.transpose(0, 1).reshape(height, detail * w, planes)
-    return torch.bmm(plan.col_ops[: detail * w].t().expand(height, -1, -1), along_h)
+    """The transpose of :func:`band_slots` for the detail slots: grad [3J, h, N, w] -> [N, H, W]."""
+    detail, h, planes, w = grad.shape
+    with exact_matmul(grad.device):
+        along_h = torch.bmm(plan.row_ops[:detail].transpose(1, 2), grad.view(detail, h, planes * w))  # [3J, H, N w]
+        per_col = grad.new_zeros((planes, height, 2 * plan.levels, w))
+        per_col.index_add_(2, plan.col_of_slot[:detail], along_h.view(detail, height, planes, w).permute(2, 1, 0, 3))
+        return torch.mm(per_col.view(planes * height, -1), plan.col_ops.t()).view(planes, height, width)
 
 
 # --------------------------------------------------------------------------------------------------- statistics
@@ -192,8 +218,8 @@ def band_slots_adjoint(grad: Tensor, plan: BandPlan, height: int, width: int) ->
 class SlotStatistics:
     """One image batch's band statistics in slot order ([3J, ...] orientation-major, N planes last).
 
-    y: the bands [K, h, w, N]; z: the detail bands centred and divided by the image's RMS coefficient s
-    [3J, h, w, N]; z2 = z^2; power s^2 [N]; inv_rms 1/s [N]; m2, m4 [3J, N] (normalised central moments);
+    y: the bands [K, h, N, w]; z: the detail bands centred and divided by the image's RMS coefficient s
+    [3J, h, N, w]; z2 = z^2; power s^2 and inv_rms 1/s [N, 1]; m2, m4 [3J, N] (normalised central moments);
     q = m4 / (m2 + eps)^2 [3J, N]; kurtosis vector [1 + 3J, N] (spread first, then k); cross [3, J, N]: sums over the
     band of z_o z_(o-1) (the orientation before, cyclically: H.D, V.H, D.V); z_prev: z rolled that way;
     l_cov [N].
@@ -217,22 +243,21 @@ class SlotStatistics:
 
 
 def slot_statistics(image: Tensor, plan: BandPlan, kurtosis: bool, covariance: bool) -> SlotStatistics:
-    """The statistics of image [H, W, N] the terms need (see :class:`SlotStatistics`); no autograd."""
-    planes = image.shape[-1]
+    """The statistics of image [N, H, W] the terms need (see :class:`SlotStatistics`); no autograd."""
     detail = 3 * plan.levels
     y = band_slots(image, plan)
-    norm = torch.linalg.vector_norm(y.view(-1, planes), dim=0)  # [N]: sqrt of the sum of squares of all bands
+    norm = torch.linalg.vector_norm(y, dim=(0, 1, 3)).unsqueeze(-1)  # [N, 1]: the root sum of squares of all bands
     power = norm.square().div_(plan.total).clamp_min_(POWER_FLOOR)
     inv_rms = power.rsqrt()
     details = y[:detail]
-    mean = details.sum(dim=(1, 2), keepdim=True).mul_(plan.inv_count)
+    mean = details.sum(dim=(1, 3), keepdim=True).mul_(plan.inv_count)
     z = torch.addcmul(details, mean, plan.mask, value=-1.0).mul_(inv_rms)  # (x - mean) / s inside, 0 around
     z2 = z.square()
     stats = SlotStatistics(y, z, z2, power, inv_rms)
     if kurtosis:
         counts = plan.count
-        stats.m2 = z2.sum(dim=(1, 2)).div_(counts)
-        stats.m4 = torch.linalg.vecdot(z2.view(detail, -1, planes), z2.view(detail, -1, planes), dim=1).div_(counts)
+        stats.m2 = z2.sum(dim=(1, 3)).div_(counts)
+        stats.m4 = (z2 * z2).sum(dim=(1, 3)).div_(counts)
         stats.shifted = stats.m2 + VARIANCE_REL_EPS
         stats.q = stats.m4 / stats.shifted.square()
         k = stats.q - 3.0
@@ -243,11 +268,11 @@ def slot_statistics(image: Tensor, plan: BandPlan, kurtosis: bool, covariance: b
     if covariance:
         z3 = z.view(3, plan.levels, *z.shape[1:])
         stats.z_prev = z3.roll(1, dims=0)
-        cross = (z3 * stats.z_prev).sum(dim=(2, 3))  # [3, J, N]
+        cross = (z3 * stats.z_prev).sum(dim=(2, 4))  # [3, J, N]
         # L_cov = sum_j ||Sigma^j - diag||_F^2 = 2 s^4 sum_(pairs) (cross / (P_j - 1))^2
         stats.cross = cross.div_(plan.pair_count)
         stats.cross_norm = torch.linalg.vector_norm(stats.cross, dim=(0, 1))
-        stats.l_cov = (stats.cross_norm * stats.power).square_().mul_(2.0)
+        stats.l_cov = (stats.cross_norm * stats.power.squeeze(-1)).square_().mul_(2.0)
     return stats
 
 
@@ -273,11 +298,11 @@ def slot_target(details: list[Tensor], kurtosis: Tensor | None, spread: Tensor |
     weighted = None
     if l1_weights is not None:
         h, w = plan.shape
-        slots = details[0].new_zeros((3, levels, h, w, planes))
+        slots = details[0].new_zeros((3, levels, h, planes, w))
         for j, band in enumerate(details):
             hj, wj = band.shape[-2:]
-            slots[:, j, :hj, :wj] = band.permute(2, 3, 4, 0, 1).reshape(3, hj, wj, planes)
-        weighted = slots.view(3 * levels, h, w, planes) * l1_weights
+            slots[:, j, :hj, :, :wj] = band.permute(2, 3, 0, 1, 4).reshape(3, hj, planes, wj)
+        weighted = slots.view(3 * levels, h, planes, w) * l1_weights
     vector = None
     if kurtosis is not None and spread is not None:
         k = kurtosis.reshape(planes, levels, 3).permute(2, 1, 0).reshape(3 * levels, planes)
@@ -286,7 +311,7 @@ def slot_target(details: list[Tensor], kurtosis: Tensor | None, spread: Tensor |
 
 
 def slot_target_of_image(image: Tensor, plan: BandPlan, l1_weights: Tensor | None) -> SlotTarget:
-    """The target of a ground-truth image [H, W, N] by the render's own operations (equal images: exactly zero)."""
+    """The target of a ground-truth image [N, H, W] by the render's own operations (equal images: exactly zero)."""
     with torch.no_grad():
         stats = slot_statistics(image, plan, kurtosis=True, covariance=True)
         weighted = None if l1_weights is None else stats.y[: 3 * plan.levels] * l1_weights
@@ -296,27 +321,33 @@ def slot_target_of_image(image: Tensor, plan: BandPlan, l1_weights: Tensor | Non
 # --------------------------------------------------------------------------------------------------- the terms
 
 
+def _present(value: Tensor | None) -> Tensor:
+    if value is None:  # a caller bug: the statistics a term needs are computed whenever its weight is non-zero
+        raise RuntimeError("a statistic the fused frequency terms need was not computed")
+    return value
+
+
 class FusedFrequencyTerms(torch.autograd.Function):
-    """(wavelet L1, KC, CBC) of image [H, W, N], each times its weight (0 where its weight is 0), against a
+    """(wavelet L1, KC, CBC) of image [N, H, W], each times its weight (0 where its weight is 0), against a
     :class:`SlotTarget`: the supervised terms of ``frequency.py``'s formulas, mean over the N planes."""
 
     @staticmethod
     def forward(ctx, image: Tensor, plan: BandPlan, target: SlotTarget, l1_weights: Tensor | None,
                 kc_weight: float, cbc_weight: float):
-        planes = image.shape[-1]
+        planes = image.shape[0]
         stats = slot_statistics(image, plan, kurtosis=kc_weight > 0, covariance=cbc_weight > 0)
         wavelet = kc = cbc = None
         weighted = None
         if l1_weights is not None:
             weighted = stats.y[: 3 * plan.levels] * l1_weights
-            wavelet = torch.dist(weighted, target.weighted_bands, p=1)
+            wavelet = torch.dist(weighted, _present(target.weighted_bands), p=1)
         if kc_weight > 0:
-            kc = torch.dist(stats.kurtosis, target.kurtosis, p=1).mul_(kc_weight / planes)
+            kc = torch.dist(_present(stats.kurtosis), _present(target.kurtosis), p=1).mul_(kc_weight / planes)
         if cbc_weight > 0:
-            cbc = torch.dist(stats.l_cov, target.l_cov, p=1).mul_(cbc_weight / planes)
+            cbc = torch.dist(_present(stats.l_cov), _present(target.l_cov), p=1).mul_(cbc_weight / planes)
         ctx.plan, ctx.target, ctx.stats, ctx.weighted, ctx.l1_weights = plan, target, stats, weighted, l1_weights
         ctx.weights = (kc_weight / planes, cbc_weight / planes)
-        ctx.image_hw = image.shape[:2]
+        ctx.image_hw = image.shape[1:]
         # an inactive term's output: a zero of its own (an autograd Function's outputs must be distinct tensors)
         return tuple(image.new_zeros(()) if term is None else term for term in (wavelet, kc, cbc))
 
@@ -335,22 +366,22 @@ class FusedFrequencyTerms(torch.autograd.Function):
             grad_m4 = grad_k / stats.shifted.square()
             grad_m2 = (grad_k * stats.q).div_(stats.shifted).mul_(-2.0)
             # m_p = mean z^p over the band: dz = z (2 dm2 + 4 dm4 z^2) / P
-            grad_z = torch.addcmul(grad_m2[:, None, None] * plan.two_over_count, stats.z2,
-                                   grad_m4[:, None, None] * plan.four_over_count).mul_(stats.z)
+            grad_z = torch.addcmul(grad_m2[:, None, :, None] * plan.two_over_count, stats.z2,
+                                   grad_m4[:, None, :, None] * plan.four_over_count).mul_(stats.z)
         if stats.l_cov is not None:
             # L = 2 s^4 sum c^2 with c_o = sum z_o z_(o-1) / (P - 1): dz_o = 4 s^4 g (c_o z_(o-1) + c_(o+1) z_(o+1))
             sign = torch.sign(stats.l_cov - target.l_cov).mul_(grad_cbc * cbc_scale)
-            coefficient = stats.power.square().mul_(sign).mul_(4.0)  # [N]
+            coefficient = stats.power.squeeze(-1).square().mul_(sign).mul_(4.0)  # [N]
             per_pair = (stats.cross * coefficient).div_(plan.pair_count)
             z3 = stats.z.view(3, plan.levels, *stats.z.shape[1:])
-            grad_cov = stats.z_prev * per_pair[:, :, None, None]
-            grad_cov.addcmul_(z3.roll(-1, dims=0), per_pair.roll(-1, dims=0)[:, :, None, None])
+            grad_cov = stats.z_prev * per_pair[:, :, None, :, None]
+            grad_cov.addcmul_(z3.roll(-1, dims=0), per_pair.roll(-1, dims=0)[:, :, None, :, None])
             grad_cov = grad_cov.view_as(stats.z)
             grad_z = grad_cov if grad_z is None else grad_z.add_(grad_cov)
         grad_y = None
         if grad_z is not None:
             # z = (y - mean(y)) / s inside the band (s detached): dy = (dz - mean(dz)) / s inside, 0 around
-            mean = grad_z.sum(dim=(1, 2), keepdim=True).mul_(plan.inv_count)
+            mean = grad_z.sum(dim=(1, 3), keepdim=True).mul_(plan.inv_count)
             grad_y = torch.addcmul(grad_z, mean, plan.mask, value=-1.0).mul_(stats.inv_rms)
         if ctx.weighted is not None:
             # d sum w |y - g| = w sign(y - g) (0 where equal, as torch's l1_loss)

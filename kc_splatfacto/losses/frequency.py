@@ -515,8 +515,8 @@ class FrequencyLoss(nn.Module):
         """The active terms through :class:`~._fused_frequency.FusedFrequencyTerms`, or None when the image supports
         no level (the level-by-level path's zero loss then applies)."""
         c = self.config
-        image = fused.as_channels_last(pred.to(_compute_dtype(pred.dtype)))
-        plan = fused.plan_for(pred.shape[-2:], c.wave, c.wavelet_mode, c.wavelet_levels, image)
+        image = fused.as_planes(pred.to(_compute_dtype(pred.dtype)))
+        plan = fused.plan_for((pred.shape[-2], pred.shape[-1]), c.wave, c.wavelet_mode, c.wavelet_levels, image)
         if plan is None:
             return None
         settings = ("wave", "wavelet_levels", "wavelet_mode") + (("cbc_correlation",) if c.cbc_weight > 0 else ())
@@ -525,7 +525,7 @@ class FrequencyLoss(nn.Module):
                              "target with the loss's own settings (FrequencyLoss.prepare_target)")
         if target.device != image.device or target.dtype != image.dtype:
             target = target.to(device=image.device, dtype=image.dtype)
-        planes = image.shape[-1]
+        planes = image.shape[0]
         weights = None
         if c.wavelet_weight > 0:
             key = (id(plan), planes)
@@ -537,7 +537,7 @@ class FrequencyLoss(nn.Module):
         slots = target.slot_targets.get(slot_key)
         if slots is None:
             if target.image is not None:
-                gt = fused.as_channels_last(target.image.to(image.dtype))
+                gt = fused.as_planes(target.image.to(image.dtype))
                 slots = fused.slot_target_of_image(gt, plan, weights)
             else:
                 slots = fused.slot_target(target.coeffs.details, target.kurtosis, target.spread, target.l_cov, plan,

@@ -63,14 +63,14 @@ def test_the_paper_settings_take_at_most_the_measured_ops():
 
 @pytest.mark.parametrize("settings", [{}, {"wavelet_mode": "zero"}, {"wavelet_weighting": "uniform"}])
 def test_the_fused_path_takes_a_fixed_few_ops_whatever_the_levels(settings):
-    """The fused Function (what a GPU runs): two batched products for every band of every level, one pass of
-    reductions, the formulas once on the small statistics, a hand-written backward. Measured on torch 2.13: 42
-    forward and 41 backward (with the terms' sum and autograd's seed gradient), against 89 and 110 level by level;
+    """The fused Function (what a GPU runs): two matrix products for every band of every level, one pass of
+    reductions, the formulas once on the small statistics, a hand-written backward. Measured on torch 2.13: 44
+    forward and 44 backward (with the terms' sum and autograd's seed gradient), against 89 and 110 level by level;
     the same for 1 to 4 levels."""
     counts = {levels: count_step(levels, fused=True, **settings) for levels in (1, 2, 3, 4)}
     assert len(set(counts.values())) == 1, counts
     forward, backward = counts[3]
-    assert forward <= 44 and backward <= 44, (forward, backward)
+    assert forward <= 46 and backward <= 46, (forward, backward)
 
 
 @pytest.mark.parametrize("settings", [{}, {"cbc_correlation": True}])

@@ -24,7 +24,7 @@ def test_band_slots_are_pywavelets_coefficients_with_zeros_around(mode, wave, le
     image = rng.random((2, 3, *size))
     x = torch.from_numpy(image)
     plan = fused.plan_for(size, wave, mode, levels, x)
-    slots = fused.band_slots(fused.as_channels_last(x), plan).numpy()  # [K, h, w, N]
+    slots = fused.band_slots(fused.as_planes(x), plan).permute(0, 1, 3, 2).numpy()  # [K, h, w, N]
     assert plan.levels == levels
     for n in range(6):
         coefficients = pywt.wavedec2(image.reshape(6, *size)[n], wave, mode=mode, level=levels)
