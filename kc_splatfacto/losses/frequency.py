@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -50,7 +51,6 @@ WaveletMode = Literal["symmetric", "reflect", "zero", "periodization"]
 """DWT boundary extensions (pywt's names; wavelets.MODES)"""
 Weighting = Literal["paper", "fine", "uniform"]
 WEIGHTINGS: tuple[str, ...] = Weighting.__args__  # type: ignore[attr-defined]
-WEIGHTS = ("wavelet_weight", "kc_weight", "cbc_weight")
 # Every statistic is computed on the bands divided by the image's RMS coefficient magnitude s (detached; by Parseval
 # ~ the RMS pixel): kurtosis and correlation do not depend on scale, and covariance is s^2 cov(c / s) exactly, so
 # nothing changes mathematically, but every intermediate is O(1) whatever the intensity scale (x1e4, x1e-6), and the
@@ -93,7 +93,8 @@ class FrequencyLossConfig:
     @classmethod
     def off(cls) -> FrequencyLossConfig:
         """Every weight zero (Splatfacto), the paper's DWT settings kept for the logged band kurtosis."""
-        return cls(wavelet_weight=0.0, kc_weight=0.0, cbc_weight=0.0)
+        weights: dict[str, Any] = {term.weight_field: 0.0 for term in TERMS}
+        return cls(**weights)
 
     @classmethod
     def from_fields(cls, holder: object) -> FrequencyLossConfig:
@@ -101,15 +102,19 @@ class FrequencyLossConfig:
         inherits them): the field list is this dataclass's, written once."""
         return cls(**{field.name: getattr(holder, field.name) for field in dataclasses.fields(cls)})
 
+    def active_terms(self) -> list[tuple[FrequencyTerm, float]]:
+        """The terms of :data:`TERMS` whose weight is non-zero, with their weight."""
+        return [(term, weight) for term in TERMS if (weight := getattr(self, term.weight_field)) > 0]
+
     @property
     def active(self) -> bool:
-        """Whether any term has a non-zero weight (with all three at zero the loss is off: Splatfacto)."""
-        return self.wavelet_weight > 0 or self.kc_weight > 0 or self.cbc_weight > 0
+        """Whether any term has a non-zero weight (with every weight zero the loss is off: Splatfacto)."""
+        return bool(self.active_terms())
 
     def field_conflict(self) -> tuple[str, str] | None:
         """A DWT level is needed while a term is on: (the field at fault, what it must be), or None."""
         if self.active and self.wavelet_levels < 1:
-            weights = ", ".join(f"{name} {getattr(self, name)!r}" for name in WEIGHTS if getattr(self, name))
+            weights = ", ".join(f"{term.weight_field} {weight!r}" for term, weight in self.active_terms())
             return "wavelet_levels", f"an integer >= 1 while a wavelet, KC or CBC weight is non-zero (here {weights})"
         return None
 
@@ -409,6 +414,37 @@ def mean_band_kurtosis(bands: WaveletBands) -> list[float]:
     return [float(v) for v in _need(bands, "kurtosis", "logged").detach().float().mean(dim=(0, 1)).cpu()]
 
 
+# --------------------------------------------------------------------------------------------------- the table
+
+
+@dataclass(frozen=True)
+class FrequencyTerm:
+    """One term of :class:`FrequencyLoss`: its name in a loss dictionary, the :class:`FrequencyLossConfig` field that
+    holds its weight, the function it is of the render's and the ground truth's bands and the settings, the band
+    statistics that function reads (``"kurtosis"``, ``"covariance"``: computed only when an active term needs them),
+    and which settings the fused torch path computes it for (None: never; then the loss runs level by level)."""
+
+    name: str
+    weight_field: str
+    function: Callable[[WaveletBands, WaveletBands, FrequencyLossConfig], Tensor]
+    statistics: tuple[str, ...] = ()
+    fused: Callable[[FrequencyLossConfig], bool] | None = None
+
+
+TERMS: tuple[FrequencyTerm, ...] = (
+    FrequencyTerm("wavelet_loss", "wavelet_weight", lambda pred, gt, c: wavelet_l1(pred, gt, c.wavelet_weighting),
+                  fused=lambda c: True),
+    FrequencyTerm("kc_loss", "kc_weight", lambda pred, gt, c: kc_loss(pred, gt, c.kc_supervised), ("kurtosis",),
+                  fused=lambda c: c.kc_supervised),
+    FrequencyTerm("cbc_loss", "cbc_weight", lambda pred, gt, c: cbc_loss(pred, gt, c.cbc_supervised), ("covariance",),
+                  fused=lambda c: c.cbc_supervised and not c.cbc_correlation),
+)
+"""The frequency loss's terms: a new term is one entry here (a weight field on FrequencyLossConfig, a function of
+the bands); "is any term active", "all off" and the weight names follow from this table."""
+WEIGHTS = tuple(term.weight_field for term in TERMS)
+"""the weight fields of :data:`TERMS`, in order"""
+
+
 # --------------------------------------------------------------------------------------------------- module
 
 
@@ -442,6 +478,7 @@ class FrequencyLoss(nn.Module):
         #: (``_fused_frequency``); False: level by level, as on the CPU (the tests compare the two)
         self.fused = True
         self._l1_weights: dict[Any, Tensor] = {}
+        self._targets: dict[Hashable, WaveletBands] = {}  # the ground truths' targets by key (compare, target)
 
     @property
     def active(self) -> bool:
@@ -482,7 +519,8 @@ class FrequencyLoss(nn.Module):
 
     def forward(self, pred: Tensor, target: WaveletBands) -> dict[str, Tensor]:
         c = self.config
-        if not c.active:
+        active = c.active_terms()
+        if not active:
             return {}
         if not isinstance(target, WaveletBands):
             raise TypeError(f"target must be WaveletBands (FrequencyLoss.prepare_target(gt)), got {type(target).__name__}")
@@ -491,25 +529,68 @@ class FrequencyLoss(nn.Module):
             raise ValueError(
                 f"pred {tuple(pred.shape)} and target {tuple(target.image_shape)} must have the same [B, C, H, W]"
             )
-        if self._takes_fused_path(pred):
+        if self._takes_fused_path(pred, active):
             fused_losses = self._fused_forward(pred, target)
             if fused_losses is not None:
                 return fused_losses
-        bands = self.bands(pred, kurtosis=c.kc_weight > 0, covariance=c.cbc_weight > 0, check_finite=False)
-        losses: dict[str, Tensor] = {}
-        if c.wavelet_weight > 0:
-            losses["wavelet_loss"] = c.wavelet_weight * wavelet_l1(bands, target, c.wavelet_weighting)
-        if c.kc_weight > 0:
-            losses["kc_loss"] = c.kc_weight * kc_loss(bands, target, c.kc_supervised)
-        if c.cbc_weight > 0:
-            losses["cbc_loss"] = c.cbc_weight * cbc_loss(bands, target, c.cbc_supervised)
-        return losses
+        needs = {statistic for term, _ in active for statistic in term.statistics}
+        bands = self.bands(pred, kurtosis="kurtosis" in needs, covariance="covariance" in needs, check_finite=False)
+        return {term.name: weight * term.function(bands, target, c) for term, weight in active}
 
-    def _takes_fused_path(self, pred: Tensor) -> bool:
-        """The fused Function serves the supervised covariance terms off the compiled CPU kernels."""
-        c = self.config
-        return (self.fused and not backend.compiled(pred) and (c.kc_weight == 0 or c.kc_supervised)
-                and (c.cbc_weight == 0 or (c.cbc_supervised and not c.cbc_correlation)))
+    # ------------------------------------------------------------------------------------------- one call per image
+    def compare(self, render: Tensor, gt: Tensor, *, background: Tensor | None = None, mask: Tensor | None = None,
+                key: Hashable | None = None) -> dict[str, Tensor]:
+        """The active terms of a render against its ground truth, in the layout renders come in: what a training
+        loop calls once per step.
+
+        Args:
+            render: [H, W, 3] or [B, H, W, 3] in [0, 1] (the rasterizer's layout).
+            gt: the same shape, or RGBA [..., 4] (straight alpha) composited here over ``background`` [3] (the
+                render's background, as nerfstudio composites).
+            mask: [H, W, 1] or [B, H, W, 1], 1 where the pixel counts: render and ground truth are multiplied by it.
+            key: the ground truth's identity (e.g. (image index, resolution)): its wavelet target is computed once
+                per key and cached here. None: computed afresh (a ground truth that changes between visits, e.g.
+                RGBA over a random background).
+
+        >>> loss = FrequencyLoss()
+        >>> render, gt = torch.rand(32, 48, 3), torch.rand(32, 48, 3)
+        >>> sorted(loss.compare(render, gt, key=0))
+        ['cbc_loss', 'kc_loss', 'wavelet_loss']
+        """
+        if not self.config.active:
+            return {}
+        gt = gt.to(device=render.device, dtype=render.dtype)
+        if gt.shape[-1] == 4:
+            if background is None:
+                raise ValueError("an RGBA ground truth needs the background the render was composited over "
+                                 "(compare(..., background=...))")
+            alpha = gt[..., 3:4]
+            gt = gt[..., :3] * alpha + background.to(gt) * (1.0 - alpha)
+        if gt.shape != render.shape:
+            raise ValueError(f"render {tuple(render.shape)} and ground truth {tuple(gt.shape)} must have the same "
+                             "[..., H, W, 3]")
+        if mask is not None:
+            mask = mask.to(render)
+            render, gt = render * mask, gt * mask
+        return self(_channels_first(render), self.target(_channels_first(gt), key))
+
+    def target(self, gt: Tensor, key: Hashable | None = None) -> WaveletBands:
+        """:meth:`prepare_target` of gt [B, C, H, W], cached under ``key`` (None: not cached)."""
+        if key is None:
+            return self.prepare_target(gt)
+        target = self._targets.get(key)
+        if target is None:
+            target = self._targets[key] = self.prepare_target(gt)
+        return target
+
+    def cached_target(self, key: Hashable | None) -> WaveletBands | None:
+        """The target cached under ``key`` by :meth:`compare` / :meth:`target`, or None (never computes one)."""
+        return None if key is None else self._targets.get(key)
+
+    def _takes_fused_path(self, pred: Tensor, active: list[tuple[FrequencyTerm, float]]) -> bool:
+        """Off the compiled CPU kernels, the fused Function serves every active term it computes (TERMS' ``fused``)."""
+        return (self.fused and not backend.compiled(pred)
+                and all(term.fused is not None and term.fused(self.config) for term, _ in active))
 
     def _fused_forward(self, pred: Tensor, target: WaveletBands) -> dict[str, Tensor] | None:
         """The active terms through :class:`~._fused_frequency.FusedFrequencyTerms`, or None when the image supports
@@ -547,6 +628,11 @@ class FrequencyLoss(nn.Module):
         terms = {"wavelet_loss": wavelet, "kc_loss": kc, "cbc_loss": cbc}
         return {name: terms[name] for name, weight in zip(terms, (c.wavelet_weight, c.kc_weight, c.cbc_weight))
                 if weight > 0}
+
+
+def _channels_first(image: Tensor) -> Tensor:
+    """[H, W, C] -> [1, C, H, W] and [B, H, W, C] -> [B, C, H, W] (views)."""
+    return image.permute(2, 0, 1)[None] if image.dim() == 3 else image.permute(0, 3, 1, 2)
 
 
 def _compute_dtype(dtype: torch.dtype) -> torch.dtype:

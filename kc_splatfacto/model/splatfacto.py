@@ -304,7 +304,6 @@ class SplatfactoModel(torch.nn.Module):
         self.register_buffer("background_color", self._fixed_background(), persistent=False)
         self._frequency_loss: FrequencyLoss | None = None
         self._kurtosis_probe: FrequencyLoss | None = None
-        self._wavelet_targets: dict[tuple[int, int], Any] = {}
 
     # ----------------------------------------------------------------------------------------------- the step
     def set_step(self, step: int) -> None:
@@ -518,19 +517,14 @@ class SplatfactoModel(torch.nn.Module):
             self._frequency_loss.check_finite = False
         return self._frequency_loss
 
-    def wavelet_target(self, gt_bchw: torch.Tensor, image_idx: int | None) -> Any:
-        """The (masked, composited) GT's wavelet coefficients and statistics [1, 3, h, w], computed once per
-        (training image, resolution); ``image_idx`` None: not cached."""
-        frequency_loss = self.frequency_loss
-        if frequency_loss is None:
-            raise RuntimeError("wavelet_target: every frequency-loss weight is zero (no loss to prepare a target for)")
-        if image_idx is None:
-            return frequency_loss.prepare_target(gt_bchw)
-        key = (int(image_idx), self.get_downscale_factor())
-        target = self._wavelet_targets.get(key)
-        if target is None:
-            target = self._wavelet_targets[key] = frequency_loss.prepare_target(gt_bchw)
-        return target
+    def wavelet_target_key(self, batch: dict[str, Any]) -> tuple[int, int] | None:
+        """Where the frequency loss caches this batch's GT target: (training image, resolution) when the composited
+        GT is the same at every visit (RGB, or RGBA over a fixed background), else None (an RGBA image over a random
+        background changes with every draw)."""
+        fixed = batch["image"].shape[-1] == 3 or not (self.training and self.config.background_color == "random")
+        if not fixed or batch.get("image_idx") is None:
+            return None
+        return int(batch["image_idx"]), self.get_downscale_factor()
 
     def get_loss_dict(self, outputs: dict[str, Any], batch: dict[str, Any]) -> dict[str, torch.Tensor]:
         """Splatfacto's ``main_loss`` = (1 - ssim_lambda) L1 + ssim_lambda (1 - SSIM); ``scale_reg`` when enabled;
@@ -559,15 +553,9 @@ class SplatfactoModel(torch.nn.Module):
             else:
                 loss_dict["scale_reg"] = torch.zeros((), device=self.device)
         frequency_loss = self.frequency_loss
-        if frequency_loss is not None:
-            target = self.wavelet_target(gt_bchw, batch.get("image_idx") if self._gt_is_fixed(batch) else None)
-            loss_dict.update(frequency_loss(pred_bchw, target))
+        if frequency_loss is not None:  # (render and GT already composited and masked, as for the main loss)
+            loss_dict.update(frequency_loss.compare(pred_img, gt_img, key=self.wavelet_target_key(batch)))
         return loss_dict
-
-    def _gt_is_fixed(self, batch: dict[str, Any]) -> bool:
-        """Whether the composited GT is the same at every visit (so its wavelet target may be cached): RGB, or RGBA
-        over a fixed background; an RGBA image over a random background changes with every draw."""
-        return batch["image"].shape[-1] == 3 or not (self.training and self.config.background_color == "random")
 
     @torch.no_grad()
     def get_metrics_dict(
@@ -581,7 +569,8 @@ class SplatfactoModel(torch.nn.Module):
             "gaussian_count": self.num_points,
         }
         if with_kurtosis:
-            cached = self._cached_wavelet_target(batch.get("image_idx")) if self._gt_is_fixed(batch) else None
+            frequency_loss = self.frequency_loss
+            cached = None if frequency_loss is None else frequency_loss.cached_target(self.wavelet_target_key(batch))
             metrics["kurtosis_render"] = self.band_kurtosis(pred_img)
             metrics["kurtosis_gt"] = self.band_kurtosis(cached or gt_img)
         return metrics
@@ -596,12 +585,6 @@ class SplatfactoModel(torch.nn.Module):
         metrics = {"psnr": float(psnr(pred_bchw, gt_bchw, mask=mask)),
                    "ssim": float(mean_ssim(pred_bchw, gt_bchw, mask=mask))}
         return metrics, (pred_bchw, gt_bchw)
-
-    def _cached_wavelet_target(self, image_idx: int | None) -> Any:
-        """The training image's cached WaveletBands at the current resolution, or None (never computes one)."""
-        if image_idx is None or self.frequency_loss is None:
-            return None
-        return self._wavelet_targets.get((int(image_idx), self.get_downscale_factor()))
 
     def band_kurtosis(self, image: Any) -> list[float]:
         """Excess kurtosis of every detail subband, channel-averaged: 3 x levels values.

@@ -20,7 +20,7 @@ import torch
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel, SplatfactoModelConfig, num_sh_bases
 
-from kc_splatfacto.losses.frequency import FrequencyLoss, FrequencyLossConfig, WaveletBands
+from kc_splatfacto.losses.frequency import FrequencyLoss, FrequencyLossConfig
 from kc_splatfacto.nerfstudio_plugin.cpu import (
     LPIPS_INSTALL,
     OfflineLPIPS,
@@ -70,7 +70,6 @@ class KCSplatfactoModel(SplatfactoModel):
             self._populate_modules_for_cpu()
         settings = self.config.frequency
         self.frequency_loss = settings.setup() if settings.active else None
-        self.wavelet_targets: Dict[tuple, WaveletBands] = {}
 
     def _populate_modules_for_cpu(self) -> None:
         """nerfstudio's ``populate_modules`` with the offline LPIPS, and the seed colours set here: nerfstudio builds
@@ -181,26 +180,18 @@ class KCSplatfactoModel(SplatfactoModel):
         if self.frequency_loss is None:
             return loss_dict
         gt_img = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
-        pred_img = outputs["rgb"]
-        if "mask" in batch:
-            mask = self._downscale_if_required(batch["mask"]).to(self.device)
-            gt_img, pred_img = gt_img * mask, pred_img * mask
-        target = self.wavelet_target(_bchw(gt_img), batch)
-        loss_dict.update(self.frequency_loss(_bchw(pred_img), target))
+        mask = self._downscale_if_required(batch["mask"]).to(self.device) if "mask" in batch else None
+        loss_dict.update(self.frequency_loss.compare(outputs["rgb"], gt_img, mask=mask,
+                                                     key=self.wavelet_target_key(batch)))
         return loss_dict
 
-    def wavelet_target(self, gt_bchw: torch.Tensor, batch: Dict[str, Any]) -> WaveletBands:
-        """The ground truth's wavelet bands and statistics [1, 3, h, w], computed once per (training image,
-        resolution) when the composited ground truth is the same at every visit (RGB, or RGBA over a fixed
-        background), else computed afresh."""
-        assert self.frequency_loss is not None
+    def wavelet_target_key(self, batch: Dict[str, Any]) -> Optional[tuple]:
+        """(training image, resolution): where the frequency loss caches the ground truth's target, when the
+        composited ground truth is the same at every visit (RGB, or RGBA over a fixed background); else None."""
         fixed = batch["image"].shape[-1] == 3 or not (self.training and self.config.background_color == "random")
         if not fixed or "image_idx" not in batch:
-            return self.frequency_loss.prepare_target(gt_bchw)
-        key = (int(batch["image_idx"]), self._get_downscale_factor())
-        if key not in self.wavelet_targets:
-            self.wavelet_targets[key] = self.frequency_loss.prepare_target(gt_bchw)
-        return self.wavelet_targets[key]
+            return None
+        return int(batch["image_idx"]), self._get_downscale_factor()
 
     # ----------------------------------------------------------------------------------------------- metrics
     def get_image_metrics_and_images(self, outputs, batch):

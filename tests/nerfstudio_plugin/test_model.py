@@ -72,10 +72,10 @@ def test_a_term_is_computed_only_when_its_weight_is_not_zero_and_the_target_is_c
     model = plugin_model(frequency=FrequencyLossConfig(kc_weight=0.0))
     first = model.get_loss_dict({"rgb": pred, "background": background}, batch)
     assert "kc_loss" not in first and "wavelet_loss" in first and "cbc_loss" in first
-    assert list(model.wavelet_targets) == [(2, 1)]  # (image index, downscale factor)
-    cached = model.wavelet_targets[(2, 1)]
+    assert list(model.frequency_loss._targets) == [(2, 1)]  # (image index, downscale factor)
+    cached = model.frequency_loss.cached_target((2, 1))
     again = model.get_loss_dict({"rgb": pred, "background": background}, batch)
-    assert model.wavelet_targets[(2, 1)] is cached and torch.equal(again["cbc_loss"], first["cbc_loss"])
+    assert model.frequency_loss.cached_target((2, 1)) is cached and torch.equal(again["cbc_loss"], first["cbc_loss"])
     plain = plugin_model(frequency=FrequencyLossConfig.off())
     assert plain.frequency_loss is None
     assert not set(TERMS) & set(plain.get_loss_dict({"rgb": pred, "background": background}, batch))
