@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from kc_splatfacto.atomic import atomic_write_bytes
+from kc_splatfacto.errors import UserError
 
 #: The parameter names of ``model.gauss_params`` that an export carries.
 PARAM_NAMES = ("means", "scales", "quats", "opacities", "features_dc", "features_rest")
@@ -137,7 +138,14 @@ def _finite_tensors(params: Mapping[str, torch.Tensor | np.ndarray]) -> tuple[di
 
 
 def _gsplat_bytes(t: Mapping[str, torch.Tensor], fmt: str) -> bytes:
-    from gsplat import export_splats  # imported here: gsplat takes seconds to import and only exports need it
+    try:  # imported here: gsplat takes seconds to import and only exports need it
+        from gsplat import export_splats
+    except ImportError as exc:  # gsplat before 1.5 (nerfstudio 1.1 pins 1.4.0) has no exporter
+        raise UserError(
+            f"the {fmt} writer is gsplat's export_splats (gsplat 1.5 or newer), which this environment lacks ({exc}): "
+            "pip install 'gsplat>=1.5,<1.6', or export spz (written without gsplat); in nerfstudio's environment "
+            "ns-export gaussian-splat writes a PLY"
+        ) from exc
 
     data = export_splats(
         means=t["means"], scales=t["scales"], quats=t["quats"], opacities=t["opacities"],

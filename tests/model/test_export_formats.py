@@ -356,3 +356,19 @@ def test_spz_antialiased_flag(tmp_path):
     params = synthetic_gaussians(n=10)
     assert read_spz(export_gaussians(tmp_path / "a.spz", params, "spz", antialiased=True).path.read_bytes())["flags"] == 1
     assert read_spz(export_gaussians(tmp_path / "c.spz", params, "spz").path.read_bytes())["flags"] == 0
+
+
+def test_without_gsplat_exporter_is_one_clear_error(tmp_path, monkeypatch):
+    """nerfstudio 1.1 pins gsplat 1.4.0, which has no export_splats: the gsplat formats say so and what to do, SPZ
+    (written here) still works."""
+    import sys
+    import types
+
+    from kc_splatfacto.errors import UserError
+
+    monkeypatch.setitem(sys.modules, "gsplat", types.ModuleType("gsplat"))  # a gsplat without export_splats
+    params = synthetic_gaussians(n=10)
+    with pytest.raises(UserError, match=r"gsplat 1\.5 or newer.*spz"):
+        export_gaussians(tmp_path / "g.ply", params, "ply")
+    assert not (tmp_path / "g.ply").exists()
+    assert len(read_spz(export_gaussians(tmp_path / "g.spz", params, "spz").path.read_bytes())["means"]) == 10
