@@ -40,12 +40,12 @@ def test_layout_matches_inria(tmp_path):
     header, props, types, body = _parse_header_and_body(result.path)
     assert header[0] == "ply" and header[1] == "format binary_little_endian 1.0"
     assert types == {"float"}
-    expected = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(45)]
+    # gsplat's layout: Inria's without the zero normals (nx ny nz), which 3DGS readers take by name or ignore
+    expected = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(45)]
     expected += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
     assert props == expected == ply_property_names(15)
     col = {name: i for i, name in enumerate(props)}
     np.testing.assert_array_equal(body[:, [col["x"], col["y"], col["z"]]], params["means"].numpy())
-    np.testing.assert_array_equal(body[:, [col["nx"], col["ny"], col["nz"]]], 0)
     np.testing.assert_array_equal(body[:, col["opacity"]], params["opacities"][:, 0].numpy())  # raw logit
     np.testing.assert_array_equal(body[:, col["scale_0"]:col["scale_2"] + 1], params["scales"].numpy())  # log scale
     np.testing.assert_array_equal(body[:, col["rot_0"]:col["rot_3"] + 1], params["quats"].numpy())
