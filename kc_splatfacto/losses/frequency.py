@@ -595,9 +595,35 @@ class FrequencyLoss(nn.Module):
     def _fused_forward(self, pred: Tensor, target: WaveletBands) -> dict[str, Tensor] | None:
         """The active terms through :class:`~._fused_frequency.FusedFrequencyTerms`, or None when the image supports
         no level (the level-by-level path's zero loss then applies)."""
+        inputs = self.fused_inputs(pred, target)
+        if inputs is None:
+            return None
+        return self.fused_terms(*inputs)
+
+    def fused_terms(self, image: Tensor, plan: fused.BandPlan, slots: fused.SlotTarget,
+                    weights: Tensor | None) -> dict[str, Tensor]:
+        """The active terms of image [N, H, W] against a slot target (:meth:`fused_inputs`): tensors in, tensors
+        out, nothing read back to the host, so a CUDA graph can capture it."""
         c = self.config
+        wavelet, kc, cbc = fused.FusedFrequencyTerms.apply(image, plan, slots, weights, c.kc_weight, c.cbc_weight)
+        terms = {"wavelet_loss": wavelet, "kc_loss": kc, "cbc_loss": cbc}
+        return {name: terms[name] for name, weight in zip(terms, (c.wavelet_weight, c.kc_weight, c.cbc_weight))
+                if weight > 0}
+
+    def fused_inputs(self, pred: Tensor, target: WaveletBands
+                     ) -> tuple[Tensor, fused.BandPlan, fused.SlotTarget, Tensor | None] | None:
+        """(image [N, H, W], plan, the target's slot form, the L1 weights) for :meth:`fused_terms`, built and cached
+        on first use per image size and target; None when the image supports no DWT level."""
         image = fused.as_planes(pred.to(_compute_dtype(pred.dtype)))
-        plan = fused.plan_for((pred.shape[-2], pred.shape[-1]), c.wave, c.wavelet_mode, c.wavelet_levels, image)
+        prepared = self.fused_target(image, target)
+        return None if prepared is None else (image, *prepared)
+
+    def fused_target(self, image: Tensor, target: WaveletBands
+                     ) -> tuple[fused.BandPlan, fused.SlotTarget, Tensor | None] | None:
+        """(plan, the target's slot form, the L1 weights) for an image [N, H, W] like ``image`` (its size, dtype,
+        device): built on first use, then cached; None when the image supports no DWT level."""
+        c = self.config
+        plan = fused.plan_for((image.shape[-2], image.shape[-1]), c.wave, c.wavelet_mode, c.wavelet_levels, image)
         if plan is None:
             return None
         settings = ("wave", "wavelet_levels", "wavelet_mode") + (("cbc_correlation",) if c.cbc_weight > 0 else ())
@@ -624,10 +650,11 @@ class FrequencyLoss(nn.Module):
                 slots = fused.slot_target(target.coeffs.details, target.kurtosis, target.spread, target.l_cov, plan,
                                           weights)
             target.slot_targets[slot_key] = slots
-        wavelet, kc, cbc = fused.FusedFrequencyTerms.apply(image, plan, slots, weights, c.kc_weight, c.cbc_weight)
-        terms = {"wavelet_loss": wavelet, "kc_loss": kc, "cbc_loss": cbc}
-        return {name: terms[name] for name, weight in zip(terms, (c.wavelet_weight, c.kc_weight, c.cbc_weight))
-                if weight > 0}
+        return plan, slots, weights
+
+    def takes_fused_path(self, pred: Tensor) -> bool:
+        """Whether :meth:`forward` computes the active terms of ``pred`` with the fused Function."""
+        return self._takes_fused_path(pred, self.config.active_terms())
 
 
 def _channels_first(image: Tensor) -> Tensor:

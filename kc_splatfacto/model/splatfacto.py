@@ -19,10 +19,10 @@ import torch.nn.functional as F
 
 from kc_splatfacto.data.outputs import Cameras
 from kc_splatfacto.losses.frequency import FrequencyLoss, FrequencyLossConfig, WaveletBands, mean_band_kurtosis
-from kc_splatfacto.losses.photometric import dssim, l1
 from kc_splatfacto.metrics import mean_ssim, psnr
 from kc_splatfacto.model import ops
 from kc_splatfacto.model.gaussians import init_gaussian_params
+from kc_splatfacto.model.image_loss import ImageLoss
 from kc_splatfacto.model.strategy import DefaultStrategy, NoGaussiansLeftError
 from kc_splatfacto.render import SplitSH, rasterization
 from kc_splatfacto.render.constants import FAR_PLANE, NEAR_PLANE, SH_MAX_DEGREE
@@ -122,6 +122,9 @@ class SplatfactoModelConfig:
     rasterizer: Rasterizer = "auto"
     """which rasterizer renders: 'auto' (gsplat on CUDA when installed, the compiled CPU one otherwise), 'cpu',
     'torch' (the slow reference), 'gsplat'"""
+    loss_cuda_graphs: bool = True
+    """on CUDA, replay the image-space loss (L1, D-SSIM, the frequency terms) as a CUDA graph per training
+    resolution, checked against the eager loss at first use (model/image_loss.py); no effect on the CPU"""
     steps_scale: float = setting(1.0, real(0.0, low_open=True))
     """multiplies every step-based schedule (see the module docstring)"""
     frequency: FrequencyLossConfig = setting(default_factory=FrequencyLossConfig.off)
@@ -304,6 +307,7 @@ class SplatfactoModel(torch.nn.Module):
         self.register_buffer("background_color", self._fixed_background(), persistent=False)
         self._frequency_loss: FrequencyLoss | None = None
         self._kurtosis_probe: FrequencyLoss | None = None
+        self._image_loss: ImageLoss | None = None
 
     # ----------------------------------------------------------------------------------------------- the step
     def set_step(self, step: int) -> None:
@@ -539,11 +543,7 @@ class SplatfactoModel(torch.nn.Module):
                 optionally ``mask`` [H, W, 1] (bool, True = use the pixel).
         """
         pred_img, gt_img, _ = self._masked_pair(outputs, batch)
-        pred_bchw, gt_bchw = _bchw(pred_img), _bchw(gt_img)
-        l1_loss = l1(pred_bchw, gt_bchw)
-        sim_loss = dssim(pred_bchw, gt_bchw)
-        lam = self.config.ssim_lambda
-        loss_dict = {"main_loss": (1 - lam) * l1_loss + lam * sim_loss}
+        loss_dict = self.image_loss(pred_img, gt_img, key=self.wavelet_target_key(batch))
         if self.config.use_scale_regularization:
             if self.step % SCALE_REG_EVERY == 0:
                 scale_exp = torch.exp(self.scales)
@@ -552,10 +552,14 @@ class SplatfactoModel(torch.nn.Module):
                 loss_dict["scale_reg"] = SCALE_REG_WEIGHT * (torch.maximum(ratio, max_ratio) - max_ratio).mean()
             else:
                 loss_dict["scale_reg"] = torch.zeros((), device=self.device)
-        frequency_loss = self.frequency_loss
-        if frequency_loss is not None:  # (render and GT already composited and masked, as for the main loss)
-            loss_dict.update(frequency_loss.compare(pred_img, gt_img, key=self.wavelet_target_key(batch)))
         return loss_dict
+
+    @property
+    def image_loss(self) -> ImageLoss:
+        """The main loss and the frequency terms of a (composited, masked) render: :class:`ImageLoss`."""
+        if self._image_loss is None:
+            self._image_loss = ImageLoss(self.config.ssim_lambda, self.frequency_loss, self.config.loss_cuda_graphs)
+        return self._image_loss
 
     @torch.no_grad()
     def get_metrics_dict(
