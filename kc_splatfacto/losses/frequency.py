@@ -12,6 +12,9 @@ detail subbands in the order (level 1: H, V, D), (level 2: H, V, D), ...; every 
                   (correlation option: Sigma_uv / sqrt((Sigma_uu + eps s^2)(Sigma_vv + eps s^2)))
 - L_cov           = sum_j ||Sigma^j - diag(Sigma^j)||_F^2
 - cbc_loss        = |L_cov(pred) - L_cov(gt)|                                         (unsupervised: L_cov(pred))
+- lowpass_l1      = sum_j v_j mean|a^j(pred) - a^j(gt)| on the approximation (LL) bands of levels 1..J, v_j =
+                  2^-(j-1) ("halving") or 1: not KC-3DGS, the low-pass supervision of DWTGS / LGDWT-GS
+- diagonal_sparsity = mean|c^1_D(pred)|: the render's finest diagonal band (DWTGS's sparsity; no ground truth)
 The kc and cbc terms are averaged over images and channels. An image too small for any level has no detail band:
 every term is then 0 (still attached to pred's graph, with a zero gradient). `docs/losses.md` explains the choices
 (weighting, padding, eps).
@@ -51,6 +54,8 @@ WaveletMode = Literal["symmetric", "reflect", "zero", "periodization"]
 """DWT boundary extensions (pywt's names; wavelets.MODES)"""
 Weighting = Literal["paper", "fine", "uniform"]
 WEIGHTINGS: tuple[str, ...] = Weighting.__args__  # type: ignore[attr-defined]
+LowpassWeighting = Literal["halving", "uniform"]
+LOWPASS_WEIGHTINGS: tuple[str, ...] = LowpassWeighting.__args__  # type: ignore[attr-defined]
 # Every statistic is computed on the bands divided by the image's RMS coefficient magnitude s (detached; by Parseval
 # ~ the RMS pixel): kurtosis and correlation do not depend on scale, and covariance is s^2 cov(c / s) exactly, so
 # nothing changes mathematically, but every intermediate is O(1) whatever the intensity scale (x1e4, x1e-6), and the
@@ -89,6 +94,13 @@ class FrequencyLossConfig:
     """CBC compares the render's cross-band covariance with the GT's (False: the render's alone)"""
     cbc_correlation: bool = False
     """CBC on band correlations instead of covariances (the 'scaled CBC' ablation)"""
+    lowpass_weight: float = setting(0.0, real(0.0))
+    """weight of the L1 on the approximation (LL) bands of levels 1..J (not KC-3DGS: the low-pass supervision of
+    DWTGS and LGDWT-GS)"""
+    lowpass_weighting: LowpassWeighting = "halving"
+    """per-level weights of the low-pass L1: 'halving' 2^-(j-1) (LGDWT-GS's 1, 0.5 for LL1, LL2), 'uniform' 1"""
+    sparsity_weight: float = setting(0.0, real(0.0))
+    """weight of the L1 sparsity of the render's finest diagonal (HH) band (DWTGS; no ground truth in it)"""
 
     @classmethod
     def off(cls) -> FrequencyLossConfig:
@@ -414,6 +426,38 @@ def mean_band_kurtosis(bands: WaveletBands) -> list[float]:
     return [float(v) for v in _need(bands, "kurtosis", "logged").detach().float().mean(dim=(0, 1)).cpu()]
 
 
+def lowpass_level_weights(levels: int, lowpass_weighting: str = "halving") -> list[float]:
+    """Per-level weights v_1..v_J (level 1 = finest) of the low-pass L1."""
+    if lowpass_weighting == "halving":
+        return [2.0 ** -(j - 1) for j in range(1, levels + 1)]
+    if lowpass_weighting == "uniform":
+        return [1.0] * levels
+    raise ValueError(f"unknown low-pass weighting '{lowpass_weighting}': use one of {LOWPASS_WEIGHTINGS}")
+
+
+def lowpass_l1(pred: WaveletBands, gt: WaveletBands, lowpass_weighting: str = "halving") -> Tensor:
+    """L1 between the approximation (LL) bands of every level: sum_j v_j mean|a^j(pred) - a^j(gt)| (scalar).
+
+    The orthonormal transform's a^j is about 2^j times the local mean of the image (each level's low-pass gains 2 in
+    2D), so a level's term weighs its band's scale as well as v_j.
+    """
+    lowpass_level_weights(0, lowpass_weighting)  # validate the name early
+    gt = _check_pair(pred, gt)
+    if pred.coeffs.levels == 0:
+        return _no_band_loss(pred.coeffs)
+    weights = lowpass_level_weights(pred.coeffs.levels, lowpass_weighting)
+    terms = [weight * (band - target.detach()).abs().mean()
+             for weight, band, target in zip(weights, pred.coeffs.approximations, gt.coeffs.approximations)]
+    return torch.stack(terms).sum()
+
+
+def diagonal_sparsity(pred: WaveletBands) -> Tensor:
+    """mean|c^1_D(pred)|: the L1 of the finest diagonal (HH) band of the render (scalar; no ground truth)."""
+    if pred.coeffs.levels == 0:
+        return _no_band_loss(pred.coeffs)
+    return pred.coeffs.details[0][:, :, 2].abs().mean()
+
+
 # --------------------------------------------------------------------------------------------------- the table
 
 
@@ -438,6 +482,8 @@ TERMS: tuple[FrequencyTerm, ...] = (
                   fused=lambda c: c.kc_supervised),
     FrequencyTerm("cbc_loss", "cbc_weight", lambda pred, gt, c: cbc_loss(pred, gt, c.cbc_supervised), ("covariance",),
                   fused=lambda c: c.cbc_supervised and not c.cbc_correlation),
+    FrequencyTerm("lowpass_loss", "lowpass_weight", lambda pred, gt, c: lowpass_l1(pred, gt, c.lowpass_weighting)),
+    FrequencyTerm("sparsity_loss", "sparsity_weight", lambda pred, gt, c: diagonal_sparsity(pred)),
 )
 """The frequency loss's terms: a new term is one entry here (a weight field on FrequencyLossConfig, a function of
 the bands); "is any term active", "all off" and the weight names follow from this table."""

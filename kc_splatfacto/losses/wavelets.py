@@ -20,7 +20,7 @@ import functools
 import math
 import re
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -42,20 +42,25 @@ class WaveletCoeffs:
 
     approx:  [B, C, h_J, w_J] coarsest approximation (LL) subband.
     details: list of J tensors, finest first; details[j-1] is [B, C, 3, h_j, w_j] holding (cH, cV, cD) of level j.
+    approximations: the approximation (LL) band of every level, finest first, [B, C, h_j, w_j] (the last is
+             ``approx``; empty when no level was taken).
     """
 
     approx: Tensor
     details: list[Tensor]
+    approximations: list[Tensor] = field(default_factory=list)
 
     @property
     def levels(self) -> int:
         return len(self.details)
 
     def detach(self) -> WaveletCoeffs:
-        return WaveletCoeffs(self.approx.detach(), [d.detach() for d in self.details])
+        return WaveletCoeffs(self.approx.detach(), [d.detach() for d in self.details],
+                             [a.detach() for a in self.approximations])
 
     def to(self, *args, **kwargs) -> WaveletCoeffs:
-        return WaveletCoeffs(self.approx.to(*args, **kwargs), [d.to(*args, **kwargs) for d in self.details])
+        return WaveletCoeffs(self.approx.to(*args, **kwargs), [d.to(*args, **kwargs) for d in self.details],
+                             [a.to(*args, **kwargs) for a in self.approximations])
 
 
 # --------------------------------------------------------------------------------------------------- filters
@@ -333,10 +338,11 @@ def dwt2(x: Tensor, wave: str = "db3", levels: int = 3, mode: str = "symmetric",
     dtype = _compute_dtype(x.dtype)
     bank = _filter_bank(wave, dtype, x.device)
     current = x.to(dtype).reshape(batch * channels, 1, height, width)
-    details = []
+    details, approximations = [], []
     for _ in range(kept):
         current, detail = _level(current, wave, flen, mode, bank)  # [B*C, 1, h, w], [B*C, 3, h, w]
         h, w = detail.shape[-2:]
         details.append(detail.reshape(batch, channels, 3, h, w))
+        approximations.append(current.reshape(batch, channels, h, w))
     approx = current.reshape(batch, channels, *current.shape[-2:])
-    return WaveletCoeffs(approx=approx, details=details)
+    return WaveletCoeffs(approx=approx, details=details, approximations=approximations)
