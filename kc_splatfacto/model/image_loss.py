@@ -74,7 +74,9 @@ class ImageLoss:
         lam = self.ssim_lambda
         losses = {"main_loss": (1 - lam) * l1(pred, target) + lam * dssim(pred, target)}
         if self.frequency_loss is not None:
-            losses.update(self.frequency_loss.compare(render, gt, key=key))
+            # the same view of the render as the main loss's: the gradients of all terms meet in one node, summed in
+            # one order (a second view would sum them in another: other float rounding, another whole-run hash)
+            losses.update(self.frequency_loss(pred, self.frequency_loss.target(target, key)))
         return losses
 
     # ----------------------------------------------------------------------------------------------- graphs
