@@ -21,6 +21,9 @@ drops the 2^j level weights (uniform). "L1+Wavelet" drops the D-SSIM term (ssim_
 ``kc-splatfacto-fine`` weights finer levels heavier (2^(J-j+1)), as the paper's text (not its equation) describes.
 ``kc-splatfacto-corr`` is the setting a one-seed sweep on castle-P30 chose (the paper's weights, CBC on correlations; its
 evidence is in the docstring below its definition).
+``splatfacto-mcmc`` and ``kc-splatfacto-mcmc`` are ``splatfacto`` and ``kc-splatfacto`` with MCMC densification
+(``strategy="mcmc"``, nerfstudio main's settings: at most ``max_gs_num`` Gaussians); kc-train only, since nerfstudio
+1.1.5's Splatfacto has no strategy to swap (the nerfstudio plugin leaves them out).
 """
 
 from __future__ import annotations
@@ -91,3 +94,11 @@ kc_splatfacto_corr = MethodSpecification(
 standard deviations, invariant to each band's scale): the setting a one-seed sweep on castle-P30 chose (one pair per setting). The evidence, and
 where it does not hold, is in docs/losses.md ("The tuned setting"); ``kc-splatfacto`` (the paper's) stays the
 reference."""
+splatfacto_mcmc = MethodSpecification(
+    config=_trainer("splatfacto-mcmc", strategy="mcmc"),
+    description="Splatfacto with MCMC densification (relocation, 5% growth per refinement up to max_gs_num, noise)",
+)
+kc_splatfacto_mcmc = MethodSpecification(
+    config=_trainer("kc-splatfacto-mcmc", PAPER, strategy="mcmc"),
+    description="KC-3DGS with MCMC densification (relocation, 5% growth per refinement up to max_gs_num, noise)",
+)

@@ -221,7 +221,7 @@ def relocate(params, optimizers: dict[str, torch.optim.Optimizer], state: dict[s
         return v
 
     _update_param_with_optimizer(param_fn, optimizer_fn, params, optimizers)
-    for key, value in state.items():
+    for value in state.values():
         if isinstance(value, torch.Tensor):
             value[sampled] = 0
     return len(dead)
