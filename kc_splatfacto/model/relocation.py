@@ -71,6 +71,8 @@ def compute_relocation(opacities: torch.Tensor, scales: torch.Tensor, ratios: to
         if gsplat_relocation is not None:
             binoms = binomial_table(MAX_COPIES, torch.float32, str(opacities.device))
             kwargs = {"n_max": MAX_COPIES} if "n_max" in inspect.signature(gsplat_relocation).parameters else {}
-            return gsplat_relocation(opacities=opacities.contiguous(), scales=scales.contiguous(),
-                                     ratios=ratios.clone(), binoms=binoms, **kwargs)
+            new_opacities, new_scales = gsplat_relocation(opacities=opacities.contiguous(), scales=scales.contiguous(),
+                                                          ratios=ratios.clone(), binoms=binoms, **kwargs)
+            # the kernel writes the scales as [3 M] (some gsplat versions return them so)
+            return new_opacities.reshape(-1), new_scales.reshape(-1, 3)
     return relocation_torch(opacities, scales, ratios)

@@ -247,8 +247,11 @@ def test_the_mcmc_methods_are_splatfacto_and_kc_splatfacto_with_the_strategy_swa
     for name, (mcmc, base) in pairs.items():
         assert mcmc.config.method_name == name
         model = copy.deepcopy(mcmc.config.pipeline.model)
-        assert model.strategy == "mcmc" and isinstance(model.density_strategy(12), MCMCStrategy)
-        assert dataclasses.replace(model, strategy="default") == base.config.pipeline.model
+        strategy = model.density_strategy(12)
+        assert model.strategy == "mcmc" and isinstance(strategy, MCMCStrategy)
+        assert strategy.min_opacity == MCMCStrategy.min_opacity == 0.005  # gsplat's default, the paper's
+        base_model = base.config.pipeline.model
+        assert dataclasses.replace(model, strategy="default", cull_alpha_thresh=base_model.cull_alpha_thresh) == base_model
     tomllib = pytest.importorskip("tomllib", reason="Python 3.11's TOML reader")
     entry_points = tomllib.loads((PROJECT_ROOT / "pyproject.toml").read_text())["project"]["entry-points"]
     ours = entry_points["kc_splatfacto.method_configs"]
