@@ -258,3 +258,14 @@ def test_the_mcmc_methods_are_splatfacto_and_kc_splatfacto_with_the_strategy_swa
     assert ours["splatfacto-mcmc"] == "method_configs.splatfacto_configs:splatfacto_mcmc"
     assert ours["kc-splatfacto-mcmc"] == "method_configs.splatfacto_configs:kc_splatfacto_mcmc"
     assert not {"splatfacto-mcmc", "kc-splatfacto-mcmc"} & set(entry_points["nerfstudio.method_configs"])
+
+
+def test_kc_train_with_a_cap_below_the_seed_points_prints_one_line_naming_the_flag(tmp_path, capsys):
+    from kc_splatfacto.cli import train as kc_train
+
+    argv = ["splatfacto", "--data", "demo", "--output-dir", str(tmp_path), "--max-num-iterations", "1",
+            "--pipeline.model.strategy", "mcmc", "--pipeline.model.max-gs-num", "10"]
+    assert kc_train.entrypoint(argv) == 2
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("kc-train: error: max_gs_num (10) is smaller than the "), lines
+    assert lines[0].endswith("raise --pipeline.model.max-gs-num to at least 2000")
