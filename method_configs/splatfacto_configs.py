@@ -23,8 +23,8 @@ drops the 2^j level weights (uniform). "L1+Wavelet" drops the D-SSIM term (ssim_
 evidence is in the docstring below its definition).
 ``splatfacto-mcmc`` and ``kc-splatfacto-mcmc`` are ``splatfacto`` and ``kc-splatfacto`` with MCMC densification
 (``strategy="mcmc"``, nerfstudio main's settings: at most ``max_gs_num`` Gaussians), dead below gsplat's and the
-paper's opacity 0.005 (``MCMC_CULL_ALPHA``) rather than Splatfacto's 0.1; kc-train only, since nerfstudio 1.1.5's
-Splatfacto has no strategy to swap (the nerfstudio plugin leaves them out).
+paper's opacity 0.005 (``MCMC_CULL_ALPHA``) rather than Splatfacto's 0.1; in ns-train too (the plugin's model
+swaps the strategy, which nerfstudio 1.1.5's Splatfacto lacks).
 """
 
 from __future__ import annotations

@@ -53,6 +53,9 @@ class MCMCStrategy:
     refine_every: int = 100
     min_opacity: float = 0.005
     """Gaussians at or below this opacity are dead: relocated at each refinement"""
+    absgrad = False
+    """what the rasterizer is asked for (MCMC reads no screen-space gradient): nerfstudio's ``get_outputs`` passes
+    ``strategy.absgrad`` whichever strategy it holds (a class attribute, not a setting)"""
 
     def initialize_state(self) -> dict[str, Any]:
         """The running state: empty. gsplat keeps its binomial table here; ours is a cached constant

@@ -475,7 +475,7 @@ class SplatfactoModel(torch.nn.Module):
             far_plane=FAR_PLANE,
             render_mode=render_mode,
             rasterize_mode=self.config.rasterize_mode,
-            absgrad=isinstance(self.strategy, DefaultStrategy) and self.strategy.absgrad,
+            absgrad=self.strategy.absgrad,
             rasterizer=self.config.rasterizer,
         )
         background = self._get_background_color()

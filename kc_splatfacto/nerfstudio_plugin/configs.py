@@ -110,16 +110,9 @@ def nerfstudio_model_config(project_model: Any, project_baseline: Any) -> KCSpla
     return KCSplatfactoModelConfig(**changes)
 
 
-def nerfstudio_can_train(project_spec: Any) -> bool:
-    """Whether one of the project's methods is one nerfstudio 1.1.5's Splatfacto trains: not with MCMC densification
-    (``strategy="mcmc"``), which its Splatfacto lacks (it densifies in its own callbacks); those are kc-train's."""
-    return getattr(project_spec.config.pipeline.model, "strategy", "default") == "default"
-
-
 def method_specifications(project_methods: ModuleType | None = None) -> dict[str, MethodSpecification]:
     """{nerfstudio method name: its MethodSpecification}, one for each MethodSpecification of the project's
-    ``method_configs.splatfacto_configs`` (or ``project_methods``, a module holding such specifications) that
-    nerfstudio can train (:func:`nerfstudio_can_train`)."""
+    ``method_configs.splatfacto_configs`` (or ``project_methods``, a module holding such specifications)."""
     if project_methods is None:
         from method_configs import splatfacto_configs as project_methods
     specs = [value for value in vars(project_methods).values() if type(value).__name__ == "MethodSpecification"]
@@ -127,8 +120,6 @@ def method_specifications(project_methods: ModuleType | None = None) -> dict[str
     baseline = by_name["splatfacto"].config.pipeline.model
     result = {}
     for name, spec in by_name.items():
-        if not nerfstudio_can_train(spec):
-            continue
         ns_name = PLAIN_SPLATFACTO if name == "splatfacto" else name
         model = nerfstudio_model_config(spec.config.pipeline.model, baseline)
         result[ns_name] = MethodSpecification(config=splatfacto_trainer(ns_name, model),

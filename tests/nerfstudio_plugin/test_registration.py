@@ -24,8 +24,7 @@ from method_configs import splatfacto_configs  # noqa: E402
 NS_TRAIN = [sys.executable, "-m", "nerfstudio.scripts.train"]
 ENV = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE"}
 PROJECT_METHODS = {spec.config.method_name: spec for spec in vars(splatfacto_configs).values()
-                   if type(spec).__name__ == "MethodSpecification" and spec.config.pipeline.model.strategy == "default"}
-"""the project's methods nerfstudio 1.1.5's Splatfacto can train (the MCMC ones are kc-train's)"""
+                   if type(spec).__name__ == "MethodSpecification"}
 
 
 def _nerfstudio_name(project_name: str) -> str:
