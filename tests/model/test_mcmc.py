@@ -259,7 +259,9 @@ def test_the_mcmc_methods_are_splatfacto_and_kc_splatfacto_with_the_strategy_swa
     ours = entry_points["kc_splatfacto.method_configs"]
     assert ours["splatfacto-mcmc"] == "method_configs.splatfacto_configs:splatfacto_mcmc"
     assert ours["kc-splatfacto-mcmc"] == "method_configs.splatfacto_configs:kc_splatfacto_mcmc"
-    assert not {"splatfacto-mcmc", "kc-splatfacto-mcmc"} & set(entry_points["nerfstudio.method_configs"])
+    plugin = entry_points["nerfstudio.method_configs"]  # ns-train's, through the plugin's model
+    assert plugin["splatfacto-mcmc"] == "kc_splatfacto.nerfstudio_plugin.entry_points:splatfacto_mcmc"
+    assert plugin["kc-splatfacto-mcmc"] == "kc_splatfacto.nerfstudio_plugin.entry_points:kc_splatfacto_mcmc"
 
 
 def test_kc_train_with_a_cap_below_the_seed_points_prints_one_line_naming_the_flag(tmp_path, capsys):
