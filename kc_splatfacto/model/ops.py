@@ -256,10 +256,11 @@ def inject_noise_to_position(params, optimizers: dict[str, torch.optim.Optimizer
     Gaussian's covariance, g(o) = sigmoid(100 ((1 - o) - 0.995)) its noise gate (near 1 only for nearly transparent
     Gaussians). In place: the Parameter and its Adam moments stay."""
     opacities = torch.sigmoid(params["opacities"].detach().flatten())
-    scales = torch.exp(params["scales"].detach())
+    variances = torch.exp(2.0 * params["scales"].detach())  # S^2
     rotmats = quat_to_rotmat(params["quats"].detach())  # normalizes
-    covariances = (rotmats * (scales**2)[:, None, :]) @ rotmats.transpose(-1, -2)  # [N, 3, 3]
     gate = torch.sigmoid(NOISE_GATE_SHARPNESS * ((1.0 - opacities) - NOISE_GATE_CENTER))
     means = params["means"]
     noise = torch.randn_like(means) * gate[:, None] * scaler
-    means.add_(torch.einsum("nij,nj->ni", covariances, noise))
+    # Sigma z as R (S^2 (R^T z)): two matrix-vector products per Gaussian, no [N, 3, 3] covariance
+    in_local_axes = torch.einsum("nji,nj->ni", rotmats, noise) * variances
+    means.add_(torch.einsum("nij,nj->ni", rotmats, in_local_axes))
