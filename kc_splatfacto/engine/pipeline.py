@@ -6,8 +6,9 @@ A training step through the pipeline, as the trainer takes it (the trainer times
    data manager draws the next view (camera, uint8 image, index), the model renders it (``model.get_outputs``) and
    density control's pre-backward hook runs on what rendering produced (``model.before_backward(outputs)``);
 2. :meth:`Pipeline.train_losses`: the render against the ground truth (``model.get_loss_dict``);
-3. the trainer's backward and optimizer step, then :meth:`Pipeline.after_optimizer_step`: density control with the
-   same ``outputs`` (``model.step_post_backward``).
+3. the trainer's backward, optimizer step and schedule update, then :meth:`Pipeline.after_optimizer_step`: density
+   control with the same ``outputs`` and the optimizers (``model.step_post_backward``; MCMC reads the means' learning
+   rate from theirs).
 
 Besides: the logged training metrics, the evaluation of a split and the checkpointed state (Gaussians,
 density-control statistics, image order). ``load_run`` (kc-eval, kc-render, kc-export, kc-viewer) builds the same
@@ -85,7 +86,7 @@ class Pipeline:
 
     def after_optimizer_step(self, outputs: dict[str, Any], optimizers: dict[str, torch.optim.Optimizer]) -> dict[str, int]:
         """Step 3: density control after the optimizer step, from the step's ``outputs``; the counts of what it
-        did (duplicated, split, pruned, opacity_reset)."""
+        did (default: duplicated, split, pruned, opacity_reset; mcmc: relocated, added)."""
         return self.model.step_post_backward(optimizers, outputs)
 
     def get_train_metrics_dict(self, outputs: dict[str, Any], batch: dict[str, Any]) -> dict[str, Any]:

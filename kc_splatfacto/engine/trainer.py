@@ -457,13 +457,15 @@ class Trainer:
             for optimizer in self.optimizers.values():
                 optimizer.step()
                 optimizer.zero_grad(set_to_none=True)
+            # the schedules advance before density control, as in gsplat's simple_trainer and nerfstudio: MCMC's noise
+            # reads the means' learning rate from their optimizer, the rate of the next step
+            self._advance_schedules()
             self._lap("optimizer")
             report = self.pipeline.after_optimizer_step(outputs, self.optimizers)
             self._lap("density_control")
             if any(report.values()):
                 self.writer.write({"kind": "densify", "step": step + 1, "elapsed_s": self._elapsed(),
                                    "train_s": self._train_s, "gaussian_count": self.model.num_points, **report})
-            self._advance_schedules()
         else:
             with warnings.catch_warnings():  # only around a skipped step: a filter change re-arms once-only warnings
                 warnings.filterwarnings("ignore", message=_SCHEDULE_BEFORE_OPTIMIZER)

@@ -23,6 +23,7 @@ from kc_splatfacto.metrics import mean_ssim, psnr
 from kc_splatfacto.model import ops
 from kc_splatfacto.model.gaussians import init_gaussian_params
 from kc_splatfacto.model.image_loss import ImageLoss
+from kc_splatfacto.model.mcmc import MCMCStrategy
 from kc_splatfacto.model.strategy import DefaultStrategy, NoGaussiansLeftError
 from kc_splatfacto.render import SplitSH, rasterization
 from kc_splatfacto.render.constants import FAR_PLANE, NEAR_PLANE, SH_MAX_DEGREE
@@ -87,6 +88,17 @@ class SplatfactoModelConfig:
     """number of Gaussians a split Gaussian becomes"""
     max_num_gaussians: int | None = setting(2_000_000, integer(1, optional=True))
     """cap on densification (not in Splatfacto): beyond it only the highest-gradient candidates grow; None: no cap"""
+    strategy: Literal["default", "mcmc"] = "default"
+    """density control: 'default' (3DGS's split / duplicate / prune, Splatfacto 1.1.5's) or 'mcmc' (relocation of
+    transparent Gaussians, growth by 5% per refinement up to max_gs_num, noise on the means; nerfstudio's main)"""
+    max_gs_num: int = setting(1_000_000, integer(1))
+    """mcmc: most Gaussians the run may hold (at least the number of seed points)"""
+    noise_lr: float = setting(5e5, real(0.0))
+    """mcmc: the means' noise is scaled by this times their learning rate"""
+    mcmc_opacity_reg: float = setting(0.01, real(0.0))
+    """mcmc: weight of the mean opacity in the loss (pushes unneeded Gaussians to transparency, then relocation)"""
+    mcmc_scale_reg: float = setting(0.01, real(0.0))
+    """mcmc: weight of the mean scale (exp of the log scales) in the loss"""
     sh_degree_interval: int = setting(1000, integer(1))
     """every this many steps turn on another SH degree"""
     cull_screen_size: float = setting(0.15, real(0.0, low_open=True))
@@ -174,10 +186,20 @@ class SplatfactoModelConfig:
             degree += 1
         return degree
 
-    def density_strategy(self, num_train_data: int) -> DefaultStrategy:
-        """Density control as Splatfacto 1.1.5 configures gsplat's ``DefaultStrategy`` from these fields (step counts
-        after ``steps_scale``); ``num_train_data`` sets the pause after each opacity reset."""
+    def density_strategy(self, num_train_data: int) -> DefaultStrategy | MCMCStrategy:
+        """Density control as Splatfacto configures gsplat's strategies from these fields (step counts after
+        ``steps_scale``): ``DefaultStrategy`` as 1.1.5 does (``num_train_data`` sets the pause after each opacity
+        reset), ``MCMCStrategy`` as nerfstudio's main branch does (dead below ``cull_alpha_thresh``)."""
         schedule = self.step_schedule()
+        if self.strategy == "mcmc":
+            return MCMCStrategy(
+                cap_max=self.max_gs_num,
+                noise_lr=self.noise_lr,
+                refine_start_iter=schedule.warmup_length,
+                refine_stop_iter=schedule.stop_split_at,
+                refine_every=schedule.refine_every,
+                min_opacity=self.cull_alpha_thresh,
+            )
         refine_every = schedule.refine_every
         reset_every = schedule.reset_alpha_every
         return DefaultStrategy(
@@ -300,7 +322,11 @@ class SplatfactoModel(torch.nn.Module):
             random_scale=config.random_scale,
         )
         self.strategy = config.density_strategy(self.num_train_data)
-        self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene_scale)
+        if isinstance(self.strategy, MCMCStrategy):
+            self.strategy.check_initial_count(len(self.gauss_params["means"]))
+            self.strategy_state = self.strategy.initialize_state()
+        else:
+            self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene_scale)
         self.step = 0
         """0-based index of the training step being taken, which every schedule reads (written by :meth:`set_step`
         alone)"""
@@ -552,6 +578,7 @@ class SplatfactoModel(torch.nn.Module):
                 loss_dict["scale_reg"] = SCALE_REG_WEIGHT * (torch.maximum(ratio, max_ratio) - max_ratio).mean()
             else:
                 loss_dict["scale_reg"] = torch.zeros((), device=self.device)
+        loss_dict.update(self.mcmc_regularization())
         return loss_dict
 
     @property
@@ -560,6 +587,19 @@ class SplatfactoModel(torch.nn.Module):
         if self._image_loss is None:
             self._image_loss = ImageLoss(self.config.ssim_lambda, self.frequency_loss, self.config.loss_cuda_graphs)
         return self._image_loss
+
+    def mcmc_regularization(self) -> dict[str, torch.Tensor]:
+        """With the mcmc strategy, nerfstudio's ``mcmc_opacity_reg`` x mean opacity and ``mcmc_scale_reg`` x mean
+        scale (each term only when its weight is non-zero): transparent Gaussians are what relocation moves, so the
+        opacity term feeds it; otherwise nothing."""
+        if self.config.strategy != "mcmc":
+            return {}
+        terms = {}
+        if self.config.mcmc_opacity_reg > 0:
+            terms["mcmc_opacity_reg"] = self.config.mcmc_opacity_reg * torch.sigmoid(self.opacities).abs().mean()
+        if self.config.mcmc_scale_reg > 0:
+            terms["mcmc_scale_reg"] = self.config.mcmc_scale_reg * torch.exp(self.scales).abs().mean()
+        return terms
 
     @torch.no_grad()
     def get_metrics_dict(
@@ -612,7 +652,13 @@ class SplatfactoModel(torch.nn.Module):
 
     def step_post_backward(self, optimizers: dict[str, torch.optim.Optimizer], outputs: dict[str, Any]) -> dict[str, int]:
         """Density control after the optimizer step of the current step: statistics from ``outputs`` (this step's
-        render, after :meth:`before_backward` and the backward), then grow / prune / reset on the schedule. Returns
-        the counts of what it did."""
+        render, after :meth:`before_backward` and the backward), then grow / prune / reset on the schedule (mcmc:
+        relocate / add, and noise scaled by the means' learning rate, read from their optimizer: the rate after this
+        step's schedule update, as gsplat's simple_trainer and nerfstudio pass it). Returns the counts of what it
+        did."""
+        if isinstance(self.strategy, MCMCStrategy):
+            means_lr = optimizers["means"].param_groups[0]["lr"]
+            return self.strategy.step_post_backward(self.gauss_params, optimizers, self.strategy_state, self.step,
+                                                    outputs["info"], lr=means_lr)
         return self.strategy.step_post_backward(self.gauss_params, optimizers, self.strategy_state, self.step,
                                                 outputs["info"])

@@ -9,18 +9,23 @@ rasterizer and evaluates LPIPS offline (:mod:`.cpu`), where nerfstudio's own mod
 The frequency-loss settings are a :class:`~kc_splatfacto.losses.frequency.FrequencyLossConfig` nested as
 ``pipeline.model.frequency`` (the paper's defaults, written once), as in ``kc-train``'s model config, so
 ``--pipeline.model.frequency.kc-weight`` means the same in both.
+
+``strategy="mcmc"`` swaps nerfstudio 1.1.5's ``DefaultStrategy`` for MCMC densification as nerfstudio's main branch
+does (its fields, names and defaults; the project's :class:`~kc_splatfacto.model.mcmc.MCMCStrategy`, which runs
+gsplat's relocation kernel on CUDA), and adds its two loss terms.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Dict, Optional, Type, Union
+from typing import Any, Dict, Literal, Optional, Type, Union
 
 import torch
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel, SplatfactoModelConfig, num_sh_bases
 
 from kc_splatfacto.losses.frequency import FrequencyLoss, FrequencyLossConfig
+from kc_splatfacto.model.mcmc import MCMCStrategy
 from kc_splatfacto.nerfstudio_plugin.cpu import (
     LPIPS_INSTALL,
     OfflineLPIPS,
@@ -41,6 +46,16 @@ class KCSplatfactoModelConfig(SplatfactoModelConfig):
     _target: Type = field(default_factory=lambda: KCSplatfactoModel)
     frequency: FrequencyLossConfig = field(default_factory=FrequencyLossConfig)
     """KC-3DGS's wavelet-domain losses and their DWT (kc-train's ``pipeline.model.frequency``)"""
+    strategy: Literal["default", "mcmc"] = "default"
+    """density control: 'default' (nerfstudio 1.1.5's) or 'mcmc' (nerfstudio main's, kc-train's)"""
+    max_gs_num: int = 1_000_000
+    """mcmc: most Gaussians the run may hold (at least the number of seed points)"""
+    noise_lr: float = 5e5
+    """mcmc: the means' noise is scaled by this times their learning rate"""
+    mcmc_opacity_reg: float = 0.01
+    """mcmc: weight of the mean opacity in the loss"""
+    mcmc_scale_reg: float = 0.01
+    """mcmc: weight of the mean scale in the loss"""
 
 
 def on_cuda(device: Any) -> bool:
@@ -70,6 +85,13 @@ class KCSplatfactoModel(SplatfactoModel):
             self._populate_modules_for_cpu()
         settings = self.config.frequency
         self.frequency_loss = settings.setup() if settings.active else None
+        if self.config.strategy == "mcmc":  # nerfstudio main's mapping of Splatfacto's fields
+            strategy = MCMCStrategy(cap_max=self.config.max_gs_num, noise_lr=self.config.noise_lr,
+                                    refine_start_iter=self.config.warmup_length,
+                                    refine_stop_iter=self.config.stop_split_at, refine_every=self.config.refine_every,
+                                    min_opacity=self.config.cull_alpha_thresh)
+            strategy.check_initial_count(self.num_points)
+            self.strategy, self.strategy_state = strategy, strategy.initialize_state()
 
     def _populate_modules_for_cpu(self) -> None:
         """nerfstudio's ``populate_modules`` with the offline LPIPS, and the seed colours set here: nerfstudio builds
@@ -171,12 +193,28 @@ class KCSplatfactoModel(SplatfactoModel):
             background = background.expand(height, width, 3)
         return {"rgb": rgb.squeeze(0), "depth": depth, "accumulation": alpha.squeeze(0), "background": background}
 
+    def step_post_backward(self, step):
+        """Density control after the optimizer step (nerfstudio's callback, after its schedules stepped): MCMC's
+        takes the means' learning rate, nerfstudio main's ``schedulers["means"]`` rate, read from their optimizer."""
+        if not isinstance(self.strategy, MCMCStrategy):
+            return super().step_post_backward(step)
+        self.strategy.step_post_backward(self.gauss_params, self.optimizers, self.strategy_state, step, self.info,
+                                         lr=self.optimizers["means"].param_groups[0]["lr"])
+
     # ----------------------------------------------------------------------------------------------- losses
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
         """nerfstudio's Splatfacto loss dictionary, plus ``wavelet_loss``, ``kc_loss`` and ``cbc_loss`` (each already
         weighted, present when its weight is non-zero) on the same render and ground truth: composited over the
-        render's background, masked as nerfstudio masks its own terms."""
+        render's background, masked as nerfstudio masks its own terms; with ``strategy="mcmc"`` also nerfstudio
+        main's ``mcmc_opacity_reg`` and ``mcmc_scale_reg``."""
         loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
+        if self.config.strategy == "mcmc":
+            if self.config.mcmc_opacity_reg > 0:
+                loss_dict["mcmc_opacity_reg"] = (self.config.mcmc_opacity_reg
+                                                 * torch.sigmoid(self.gauss_params["opacities"]).abs().mean())
+            if self.config.mcmc_scale_reg > 0:
+                loss_dict["mcmc_scale_reg"] = (self.config.mcmc_scale_reg
+                                               * torch.exp(self.gauss_params["scales"]).abs().mean())
         if self.frequency_loss is None:
             return loss_dict
         gt_img = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])

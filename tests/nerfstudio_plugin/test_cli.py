@@ -154,3 +154,17 @@ def test_fern_through_nerfstudios_colmap_parser(method, tmp_path):
         assert all(max(terms[t]) > 0 for t in TERMS)
     else:
         assert not set(TERMS) & set(terms) and "main_loss" in terms
+
+
+def test_ns_train_splatfacto_mcmc_holds_its_cap_with_the_two_terms(tmp_path):
+    # castle-P30's 1,787 seed points; refinements at steps 20 and 30: +5% (1,876), then the cap of 1,900
+    ns("ns-train", "splatfacto-mcmc", *CPU_RUN, "--output-dir", str(tmp_path), "--max-num-iterations", str(STEPS),
+       "--pipeline.model.warmup-length", "10", "--pipeline.model.refine-every", "10",
+       "--pipeline.model.max-gs-num", "1900", "--data", str(shared_scene("castle-P30")), "spars3r",
+       "--downscale-factor", "4", cwd=tmp_path)
+    run = tmp_path / "castle-P30" / "splatfacto-mcmc" / "run"
+    [checkpoint] = (run / "nerfstudio_models").glob("*.ckpt")
+    state = torch.load(checkpoint, map_location="cpu", weights_only=True)["pipeline"]
+    assert state["_model.gauss_params.means"].shape == (1900, 3)
+    terms = loss_terms(run)
+    assert terms["mcmc_opacity_reg"] and terms["mcmc_scale_reg"] and not set(TERMS) & set(terms)

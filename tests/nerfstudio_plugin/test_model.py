@@ -124,3 +124,38 @@ def test_a_checkpoint_loads_whichever_lpips_wrote_it():
     other = plugin_model()
     other.load_state_dict(foreign)
     assert torch.equal(other.means, model.means)
+
+
+def test_with_mcmc_it_trains_on_the_cpu_holds_its_cap_and_adds_the_two_terms():
+    # refinement at steps 3, 6, 9 (after the 2-step warm-up, every 3 steps): 400 -> 420 -> 440, then the cap holds
+    model = plugin_model(strategy="mcmc", max_gs_num=440, warmup_length=2, refine_every=3, cull_alpha_thresh=0.005,
+                         sh_degree_interval=2)
+    optimizers = {name: torch.optim.Adam(params, lr=1e-2) for name, params in model.get_gaussian_param_groups().items()}
+    model.optimizers = optimizers
+    gt = (torch.rand(H, W, 3, generator=torch.Generator().manual_seed(3)) * 255).to(torch.uint8)
+    counts = []
+    for step in range(12):
+        model.step = step
+        losses = model.get_loss_dict(model.get_outputs(_camera()), {"image": gt, "image_idx": 0})
+        opacities = torch.sigmoid(model.gauss_params["opacities"].detach().double())
+        scales = torch.exp(model.gauss_params["scales"].detach().double())
+        assert float(losses["mcmc_opacity_reg"].detach()) == pytest.approx(0.01 * float(opacities.mean()), rel=1e-5)
+        assert float(losses["mcmc_scale_reg"].detach()) == pytest.approx(0.01 * float(scales.mean()), rel=1e-5)
+        sum(losses.values()).backward()
+        for optimizer in optimizers.values():
+            optimizer.step()
+            optimizer.zero_grad()
+        means = model.gauss_params["means"].detach().clone()
+        model.step_post_backward(step)
+        if step % 3:  # no refinement: only the noise, scaled by the means' rate, moved the means
+            assert not torch.equal(means, model.gauss_params["means"])
+        counts.append(model.num_points)
+    assert counts == [400] * 3 + [420] * 3 + [440] * 6
+    assert all(torch.isfinite(p).all() for p in model.gauss_params.values())
+
+
+def test_with_mcmc_a_cap_below_the_seed_points_is_the_projects_one_line_error():
+    from kc_splatfacto.model.mcmc import GaussianCapError
+
+    with pytest.raises(GaussianCapError, match=r"max_gs_num \(100\) is smaller than the 400 initial Gaussians"):
+        plugin_model(strategy="mcmc", max_gs_num=100)
