@@ -280,6 +280,13 @@ def run_folder_of_another_user(monkeypatch):
     monkeypatch.setattr(tempfile, "TemporaryFile", refuse)
 
 
+def run_folder_of_another_user_seen_by_access(monkeypatch):
+    """:func:`run_folder_of_another_user`, and ``os.access`` saying so too (as it does for a user who is not root)."""
+    run_folder_of_another_user(monkeypatch)
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda path, mode, **kw: Path(path).name != "run" and real(path, mode, **kw))
+
+
 def sigterm_while_matching(monkeypatch):
     """SIGTERM arrives while COLMAP matches features (extraction skipped: the case needs no SIFT features)."""
 
@@ -494,6 +501,9 @@ CASES = [
         "--load-dir", str(root / "run"), "--max-num-iterations", "3")(root, out), 0,
          "removed 1 unfinished checkpoint file", edit=killed_mid_checkpoint("run/nerfstudio_models"),
          check=no_temp_left("run/nerfstudio_models"), changes=lambda root: root / "run", note_lines=1),
+    Case("resume-run-folder-of-another-user-in-a-new-folder", 5, "run", lambda root, out: train(
+        "--load-dir", str(root / "run"), "--max-num-iterations", "3", "--resume-from-other-run", "True")(root, out), 0,
+         "output folder", patch=run_folder_of_another_user_seen_by_access),
     Case("bench-resume-removes-killed-checkpoint-temp", 5, "study", study("--resume"), 0,
          "removed 1 unfinished checkpoint file", tool="kc-bench", edit=killed_mid_checkpoint(STUDY_MODELS),
          check=no_temp_left(STUDY_MODELS), changes=lambda root: root / "study", note_lines=1),
