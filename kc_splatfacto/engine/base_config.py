@@ -46,6 +46,9 @@ class MachineConfig:
     """seed of torch, numpy and python's random"""
     device: str = setting("auto", device_name())
     """'auto' (CUDA when available and gsplat imports, else CPU), 'cpu', 'cuda', 'cuda:1', ..."""
+    memory_budget_gb: float = setting(0.0, real(0.0))
+    """memory (GB; RAM, or the GPU's on CUDA) past which density control adds no Gaussians, so that a run stops
+    growing instead of being killed; 0: 85% of what the process may use when the run starts (engine/memory.py)"""
 
     def resolve_device(self) -> torch.device:
         if self.device == "auto":
