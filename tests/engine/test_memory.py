@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from kc_splatfacto.cli import train as kc_train
+from kc_splatfacto.engine import memory
 from kc_splatfacto.engine.checkpoints import list_checkpoints, load_checkpoint
 from kc_splatfacto.engine.memory import MemoryGuard, bytes_per_gaussian, current_rss_bytes, peak_rss_since_reset
 
@@ -48,19 +49,26 @@ def test_growth_past_the_budget_is_capped_once_at_the_current_count():
     assert roomy.after_density_control(12, 150, caps.append) is None and roomy.cap is None
 
 
-def test_a_training_under_a_small_memory_budget_finishes_with_a_checkpoint_and_one_line(tmp_path, capsys, monkeypatch):
-    """Under a budget this process already exceeds, the first growth stops density control from adding Gaussians:
-    one line names the step, the count, the budget and the remedies; the run trains on and ends with its checkpoint,
-    its count never above the cap (today such a run grows until the kernel kills it)."""
+@pytest.mark.parametrize("limit", ["budget-flag", "machine-nearly-full"])
+def test_a_training_under_a_small_memory_budget_finishes_with_a_checkpoint_and_one_line(limit, tmp_path, capsys,
+                                                                                        monkeypatch):
+    """Under a budget this process already exceeds (given with the flag, or the machine's: 1 MB left, no cgroup
+    limit), the first growth stops density control from adding Gaussians: one line names the step, the count, the
+    budget and the remedies; the run trains on and ends with its checkpoint, its count never above the cap (today such
+    a run grows until the kernel kills it)."""
     monkeypatch.setenv("KC_SPLATFACTO_CACHE", str(tmp_path / "cache"))
     monkeypatch.delenv("KC_DEBUG", raising=False)
+    if limit == "machine-nearly-full":
+        monkeypatch.setattr(memory, "_meminfo_available", lambda: 1_000_000)
+        monkeypatch.setattr(memory, "_cgroup_room", lambda: None)
+    budget = ["--machine.memory-budget-gb", "0.01"] if limit == "budget-flag" else []
     steps = 30
     code = kc_train.entrypoint([
         "splatfacto", "--data", "demo", "--output-dir", str(tmp_path / "out"), "--experiment-name", "e",
         "--timestamp", "t", "--max-num-iterations", str(steps), "--steps-per-eval-all-images", "0",
-        "--logging.progress-bar", "False", "--final-lpips-nets", "--machine.device", "cpu",
-        "--machine.memory-budget-gb", "0.01", "--pipeline.model.steps-scale", "0.02",
-        "--pipeline.model.num-downscales", "0", "demo", "--width", "64", "--height", "48"])
+        "--logging.progress-bar", "False", "--final-lpips-nets", "--machine.device", "cpu", *budget,
+        "--pipeline.model.steps-scale", "0.02", "--pipeline.model.num-downscales", "0", "demo", "--width", "64",
+        "--height", "48"])
     captured = capsys.readouterr()
     assert code == 0, captured.err[-3000:]
     assert "Traceback" not in captured.err
