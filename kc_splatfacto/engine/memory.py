@@ -13,8 +13,9 @@ operating system kills the process (no checkpoint since the last periodic one, n
   growth is capped at its current count (``model.cap_gaussians``) and one line says so, with the numbers and the
   remedies. The run then trains on at that count and ends with its checkpoint, instead of being killed.
 
-:func:`bytes_per_gaussian` comes from ``benchmarks/bench_memory.py`` (the table in docs/performance.md): the slope of a
-CPU training's peak RSS against the number of Gaussians at two image sizes, interpolated in the pixel count.
+:func:`bytes_per_gaussian` and :data:`STEP_BYTES_PER_PIXEL` come from ``benchmarks/bench_memory.py`` (the table in
+docs/performance.md): the slope of a CPU training's peak RSS against the number of Gaussians at two image sizes, and
+the rise of its intercept with the pixel count.
 """
 
 from __future__ import annotations
@@ -32,17 +33,21 @@ BUDGET_FRACTION = 0.85
 """the share of the memory a process may use that a run takes as its budget when ``memory_budget_gb`` is 0 (the
 rest is headroom for evaluation, LPIPS networks and the estimate's error)"""
 
-#: peak bytes per Gaussian of a CPU training step (kc-splatfacto, benchmarks/bench_memory.py) at two image sizes
-#: (pixels): the slope of the peak RSS against the number of Gaussians; linear in the pixel count between and beyond
-MEASURED_BYTES_PER_GAUSSIAN = ((320 * 240, 1_100.0), (960 * 720, 1_300.0))
+#: peak bytes per Gaussian of a CPU training step (kc-splatfacto, benchmarks/bench_memory.py, docs/performance.md):
+#: the slope of the peak RSS against the number of Gaussians, 1,246 at 320x240 and 1,184 at 960x720 (the same within
+#: the measurement's noise: a Gaussian's parameters, gradients, Adam moments and projection buffers do not depend on
+#: the image), rounded up
+BYTES_PER_GAUSSIAN = 1_300
+#: a training step's buffers per pixel of its image (render, loss maps, wavelet bands and their gradients): the rise of
+#: the peak at N = 0 from 320x240 to 960x720 (626 MB to 1,044 MB over 614,400 more pixels), rounded up
+STEP_BYTES_PER_PIXEL = 700
 REMEDIES = ("lower --pipeline.model.max-num-gaussians to what fits, use --pipeline.model.strategy mcmc (a fixed "
             "count), or a larger --downscale-factor (fewer bytes per Gaussian)")
 
 
-def bytes_per_gaussian(pixels: int) -> float:
-    """Peak bytes one Gaussian costs a training step on images of ``pixels`` pixels (at least the smaller size's)."""
-    (p0, b0), (p1, b1) = MEASURED_BYTES_PER_GAUSSIAN
-    return max(b0, b0 + (b1 - b0) * (pixels - p0) / (p1 - p0))
+def bytes_per_gaussian(pixels: int) -> float:  # noqa: ARG001  (measured alike at both image sizes)
+    """Peak bytes one Gaussian costs a training step on images of ``pixels`` pixels."""
+    return float(BYTES_PER_GAUSSIAN)
 
 
 def current_rss_bytes() -> int:
@@ -135,11 +140,12 @@ class MemoryGuard:
             source = f"{BUDGET_FRACTION:.0%} of the {_gb(total)} GB this process may use" if total else ""
         guard = cls(device=device, budget=budget, pixels=pixels, last_count=count, announce=announce)
         if budget is not None and max_gaussians is not None:
-            need = guard.usage() + bytes_per_gaussian(pixels) * max(max_gaussians - count, 0)
+            start = guard.usage() + STEP_BYTES_PER_PIXEL * pixels  # what the run holds, and a step's image buffers
+            need = start + bytes_per_gaussian(pixels) * max(max_gaussians - count, 0)
             if need > budget:
-                room = budget - guard.usage()
+                room = budget - start
                 fits = (f"about {count + int(room / bytes_per_gaussian(pixels)):,} fit" if room > 0 else
-                        f"the run holds {_gb(guard.usage())} GB already, so none are added")
+                        f"the run needs {_gb(start)} GB before it adds any, so none are added")
                 announce(f"--pipeline.model.max-num-gaussians {max_gaussians:,} would need about "
                          f"{_gb(need)} GB on {_where(device)} at {pixels:,} pixels per image, more than the memory "
                          f"budget of {_gb(budget)} GB ({source}); {fits}: growth will stop at the budget. "
@@ -201,5 +207,5 @@ def _gb(value: float | None) -> str:
     return "?" if value is None else f"{value / 1e9:.2f}"
 
 
-__all__ = ["BUDGET_FRACTION", "MemoryGuard", "bytes_per_gaussian", "cpu_memory_it_may_use", "current_rss_bytes",
+__all__ = ["BUDGET_FRACTION", "BYTES_PER_GAUSSIAN", "STEP_BYTES_PER_PIXEL", "MemoryGuard", "bytes_per_gaussian", "cpu_memory_it_may_use", "current_rss_bytes",
            "peak_rss_since_reset", "reset_peak_rss"]
