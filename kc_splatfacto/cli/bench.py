@@ -50,7 +50,12 @@ from kc_splatfacto.atomic import atomic_write_text
 from kc_splatfacto.cli.main import INTERRUPTED_EXIT, check_folder_can_hold, did_you_mean, path_flag, run_cli
 from kc_splatfacto.cli.train import override_config
 from kc_splatfacto.data.detect import AutoDataParserConfig
-from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, checkpoint_step, list_checkpoints
+from kc_splatfacto.engine.checkpoints import (
+    CHECKPOINT_DIR,
+    checkpoint_step,
+    list_checkpoints,
+    remove_orphan_temp_files,
+)
 from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.optimizers import SPLATFACTO_SCHEDULE_STEPS  # ``--steps-scale auto``: budget / this
 from kc_splatfacto.engine.validation import ConfigValueError, validate_config
@@ -298,6 +303,10 @@ def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
             check_same_settings(spec.run_dir, spec.config)
     if args.resume and not args.report_only:
         check_budget_reaches_checkpoints(specs)
+        for spec in specs:  # what a killed run left mid-write, a finished run's too: removed, one line each
+            remove_orphan_temp_files(spec.run_dir / CHECKPOINT_DIR,
+                                     announce=lambda line, spec=spec: print(f"[kc-bench] {spec.name}: {line}",
+                                                                            flush=True))
     if args.report_only:
         to_run = [spec for spec in specs if is_finished(spec.run_dir, spec.max_steps)]
         if not to_run:

@@ -20,13 +20,7 @@ from typing import Any
 import torch
 
 from kc_splatfacto.atomic import atomic_write_bytes, atomic_write_text
-from kc_splatfacto.engine.checkpoints import (
-    CHECKPOINT_DIR,
-    checkpoint_step,
-    find_checkpoint,
-    list_checkpoints,
-    remove_orphan_temp_files,
-)
+from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, checkpoint_step, find_checkpoint, list_checkpoints
 from kc_splatfacto.engine.config import load_config
 from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.run_guard import differences
@@ -159,9 +153,6 @@ def execute_run(spec: RunSpec, *, resume: bool, send_files: bool = False) -> dic
                               "error": None}
     try:
         config = spec.config
-        if resume:  # what a killed run left mid-write (a finished run's too): removed, in one line
-            remove_orphan_temp_files(spec.run_dir / CHECKPOINT_DIR,
-                                     announce=lambda line: print(f"[kc-bench] {spec.name}: {line}", flush=True))
         if resume and is_finished(spec.run_dir, spec.max_steps):
             check_same_settings(spec.run_dir, config)
             run_dir, status = spec.run_dir, "reused"
