@@ -6,9 +6,15 @@ from pathlib import Path
 import pytest
 
 import kc_splatfacto  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads: the first import of torch is through it)
+from kc_splatfacto.data.base import READ_ONLY_DATA_ENV
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("KC_SHARED_DATA", PROJECT_ROOT.parent / "shared" / "data"))
+# the shared scenes are read-only in intent, whatever their mode (a contributor's clone has them writable): derived
+# images go to the cache, in this process and in every command the suite starts (ns-train, the GPU campaign's dry
+# run), which inherit the environment; set at import, before test modules copy os.environ for their subprocesses
+os.environ[READ_ONLY_DATA_ENV] = os.pathsep.join(
+    filter(None, [os.environ.get(READ_ONLY_DATA_ENV, ""), str(SHARED_DATA.resolve())]))
 
 
 def shared_scene(name: str) -> Path:
@@ -44,19 +50,10 @@ def _shared_listing() -> dict[str, tuple[int, int]]:
 @pytest.fixture(autouse=True, scope="session")
 def shared_data_is_never_written():
     """Nothing in the suite may write into ../shared: the shared scenes are treated as read-only whatever their
-    mount or mode bits say (derived images go to the user cache), and the folder is compared before and after."""
-    from kc_splatfacto.data import images
-
-    real = images.folder_is_writable
-    shared = SHARED_DATA.resolve()
-
-    def writable(folder: Path) -> bool:
-        return not Path(folder).resolve().is_relative_to(shared) and real(folder)
-
-    images.folder_is_writable = writable
+    mount or mode bits say (``$KC_SPLATFACTO_READ_ONLY_DATA``, set above: derived images go to the user cache), and
+    the folder is compared before and after."""
     before = _shared_listing()
     yield
-    images.folder_is_writable = real
     after = _shared_listing()
     changed = sorted(set(before.items()) ^ set(after.items()))
     assert not changed, f"the test suite wrote into {SHARED_DATA}: {changed[:10]}"

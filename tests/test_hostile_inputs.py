@@ -9,8 +9,12 @@ outputs. Cases that must be refused stop before training; the few accepted ones 
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import signal
 import struct
+import tempfile
+import time
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,13 +24,17 @@ import cv2
 import numpy as np
 import pytest
 
+from kc_splatfacto.cli import bench as kc_bench
 from kc_splatfacto.cli import eval as kc_eval
 from kc_splatfacto.cli import export as kc_export
+from kc_splatfacto.cli import process_data as kc_process_data
 from kc_splatfacto.cli import train as kc_train
+from kc_splatfacto.data import sfm
 from kc_splatfacto.engine.config import load_config, save_config
 from tests.hostile_scenes import colmap_scene, transforms_scene, tree_digest
 
-TOOLS = {"kc-train": kc_train.entrypoint, "kc-eval": kc_eval.entrypoint, "kc-export": kc_export.entrypoint}
+TOOLS = {"kc-train": kc_train.entrypoint, "kc-eval": kc_eval.entrypoint, "kc-export": kc_export.entrypoint,
+         "kc-process-data": kc_process_data.entrypoint, "kc-bench": kc_bench.entrypoint}
 #: flags that make an accepted case train in seconds (no periodic eval, no VGG, few random Gaussians)
 FAST = ["--max-num-iterations", "2", "--steps-per-eval-all-images", "0", "--logging.progress-bar", "False",
         "--final-lpips-nets", "--pipeline.model.num-random", "100", "--machine.device", "cpu"]
@@ -39,7 +47,7 @@ class Case:
 
     id: str
     category: int
-    scene: str  # "transforms", "colmap", "colmap_bin", "spars3r", "run"
+    scene: str  # "transforms", "colmap", "colmap_bin", "spars3r", "run", "study"
     args: Callable[[Path, Path], list[str]]
     code: int
     fragment: str
@@ -48,6 +56,7 @@ class Case:
     patch: Callable[[pytest.MonkeyPatch], None] | None = None
     check: Callable[[Path], None] | None = None
     changes: Callable[[Path], Path] | None = None  # a folder outside ``out`` the command may write (a resumed run)
+    note_lines: int | None = None  # an accepted case: the number of output lines that hold ``fragment``
 
 
 def train(*extra, method="splatfacto", parser=()):
@@ -57,6 +66,23 @@ def train(*extra, method="splatfacto", parser=()):
 
 def run_tool(*extra):
     return lambda root, out: ["--load-config", str(root / "run" / "config.yml"), *extra]
+
+
+def process_data(*extra):
+    return lambda root, out: ["images", "--data", str(root / "scene" / "images"), "--output-dir", str(out / "new"),
+                              *extra]
+
+
+#: the study of the "study" cases (``finished_study``): 3 steps of splatfacto, seed 0, on the case's COLMAP scene
+#: (evaluated at steps 1 and 3: a budget of 2 finds no evaluation to reuse the run with)
+STUDY_STEPS = 3
+
+
+def study(*extra, steps=STUDY_STEPS):
+    return lambda root, out: ["--data", str(root / "scene"), "--methods", "splatfacto", "--seeds", "0",
+                              "--max-num-iterations", str(steps), "--num-evals", "1", "--output-dir",
+                              str(root / "study"), "--set", "pipeline.model.num_random=100", "final_lpips_nets=",
+                              *extra]
 
 
 # ------------------------------------------------------------------------------------------------ scene edits
@@ -220,6 +246,60 @@ def disk_full_on_cache(monkeypatch):
     monkeypatch.setattr(atomic, "atomic_write", full)
 
 
+#: the temp file a checkpoint write leaves when the process is killed mid-write (kill -9, power loss)
+KILLED_TEMP = ".step-000000003.ckpt.k1ll3d.tmp"
+
+
+def killed_mid_checkpoint(models: str):
+    def edit(root):
+        (root / models / KILLED_TEMP).write_bytes(b"PK\x03\x04" + b"\0" * 4096)
+
+    return edit
+
+
+def no_temp_left(models: str):
+    def check(root):
+        assert not (root / models / KILLED_TEMP).exists()
+        assert not list((root / models).glob(".*.tmp")), list((root / models).iterdir())
+
+    return check
+
+
+STUDY_MODELS = "study/runs/scene/splatfacto/seed0/nerfstudio_models"
+
+
+def run_folder_of_another_user(monkeypatch):
+    """The run folder refuses this user's writes, as another user's folder does (as root, chmod stops nothing)."""
+    real = tempfile.TemporaryFile
+
+    def refuse(*args, dir=None, **kwargs):
+        if dir is not None and Path(dir).name == "run":
+            raise PermissionError(13, "Permission denied", str(dir))
+        return real(*args, dir=dir, **kwargs)
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", refuse)
+
+
+def run_folder_of_another_user_seen_by_access(monkeypatch):
+    """:func:`run_folder_of_another_user`, and ``os.access`` saying so too (as it does for a user who is not root)."""
+    run_folder_of_another_user(monkeypatch)
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda path, mode, **kw: Path(path).name != "run" and real(path, mode, **kw))
+
+
+def sigterm_while_matching(monkeypatch):
+    """SIGTERM arrives while COLMAP matches features (extraction skipped: the case needs no SIFT features)."""
+
+    def terminated(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        for _ in range(100):  # the handler runs between these bytecodes, as pycolmap's own checks let it
+            time.sleep(0.01)
+        raise AssertionError("SIGTERM did not stop kc-process-data")
+
+    monkeypatch.setattr(sfm, "extract_features", lambda *args, **kwargs: None)
+    monkeypatch.setattr(sfm, "match_features", terminated)
+
+
 def only_the_old_checkpoint(root):
     models = root / "run" / "nerfstudio_models"
     assert sorted(p.name for p in models.iterdir()) == ["step-000000002.ckpt"], list(models.iterdir())
@@ -273,6 +353,20 @@ CASES = [
     Case("split-fraction-0", 1, "transforms",
          train(parser=("nerfstudio-data", "--eval-mode", "fraction", "--train-split-fraction", "0")), 2,
          "train_split_fraction"),
+    # every value checked where it enters (issue 58): the device before torch parses it, kc-process-data's flags
+    # before pycolmap sees them, kc-bench's device before any run starts
+    Case("device-tpu", 1, "transforms", train("--machine.device", "tpu"), 2, "--machine.device must be 'auto', 'cpu'"),
+    Case("device-cuda-index", 1, "transforms", train("--machine.device", "cuda:99"), 2, "--machine.device cuda:99"),
+    Case("device-uppercase", 1, "transforms", train("--machine.device", "CPU"), 2, "machine.device"),
+    Case("bench-device-tpu", 1, "colmap", study("--device", "tpu"), 2, "machine.device", tool="kc-bench"),
+    Case("process-data-seed-negative", 1, "transforms", process_data("--seed", "-1"), 2,
+         "--seed must be an integer in 0..2147483647", tool="kc-process-data"),
+    Case("process-data-seed-2^31", 1, "transforms", process_data("--seed", str(2**31)), 2, "--seed",
+         tool="kc-process-data"),
+    Case("process-data-max-image-size-8", 1, "transforms", process_data("--max-image-size", "8"), 2,
+         "--max-image-size", tool="kc-process-data"),
+    Case("process-data-num-train-0", 1, "transforms", process_data("--num-train", "0"), 2, "--num-train",
+         tool="kc-process-data"),
     # 2. transforms.json against nerfstudio's format: file, frame index, field
     Case("null-frame", 2, "transforms", train(), 2, "frames[2]",
          edit=edit_json(lambda m: m["frames"].__setitem__(2, None))),
@@ -388,7 +482,31 @@ CASES = [
          patch=disk_full_on_checkpoint, check=only_the_old_checkpoint, changes=lambda root: root / "run"),
     Case("cache-disk-full", 5, "colmap", train(parser=("colmap", "--downscale-factor", "2")), 2, "space",
          patch=disk_full_on_cache),
+    # what a crash leaves, refusals before the study starts, messages that name the way out (issue 58)
+    Case("bench-resume-budget-below-checkpoints", 5, "study", study("--resume", steps=2), 2,
+         "--max-num-iterations 3 (or more)", tool="kc-bench"),
+    Case("resume-run-folder-of-another-user", 5, "run", lambda root, out: train(
+        "--load-dir", str(root / "run"), "--max-num-iterations", "3")(root, out), 2, "--load-dir COPY",
+         patch=run_folder_of_another_user),
+    Case("eval-method-name-misspelt", 5, "run", run_tool(), 2, "method_name 'splatfactoo' is not a registered method",
+         tool="kc-eval", edit=edit_config(lambda t: t.replace("method_name: splatfacto", "method_name: splatfactoo"))),
+    Case("resume-method-name-misspelt", 5, "run", lambda root, out: train(
+        "--load-dir", str(root / "run"), "--max-num-iterations", "3")(root, out), 2,
+         "method_name 'splatfactoo' is not a registered method",
+         edit=edit_config(lambda t: t.replace("method_name: splatfacto", "method_name: splatfactoo"))),
+    Case("process-data-sigterm-while-matching", 5, "transforms", process_data(), 130, "interrupted (SIGTERM)",
+         tool="kc-process-data", patch=sigterm_while_matching),
     # accepted: a user passes what they naturally would
+    Case("resume-removes-killed-checkpoint-temp", 5, "run", lambda root, out: train(
+        "--load-dir", str(root / "run"), "--max-num-iterations", "3")(root, out), 0,
+         "removed 1 unfinished checkpoint file", edit=killed_mid_checkpoint("run/nerfstudio_models"),
+         check=no_temp_left("run/nerfstudio_models"), changes=lambda root: root / "run", note_lines=1),
+    Case("resume-run-folder-of-another-user-in-a-new-folder", 5, "run", lambda root, out: train(
+        "--load-dir", str(root / "run"), "--max-num-iterations", "3", "--resume-from-other-run", "True")(root, out), 0,
+         "output folder", patch=run_folder_of_another_user_seen_by_access),
+    Case("bench-resume-removes-killed-checkpoint-temp", 5, "study", study("--resume"), 0,
+         "removed 1 unfinished checkpoint file", tool="kc-bench", edit=killed_mid_checkpoint(STUDY_MODELS),
+         check=no_temp_left(STUDY_MODELS), changes=lambda root: root / "study", note_lines=1),
     Case("load-config-run-folder", 5, "run", lambda root, out: ["--load-config", str(root / "run"), "--output-path",
                                                                str(out / "m.json")], 0, "PSNR", tool="kc-eval"),
     Case("load-dir-ckpt-file", 5, "run", lambda root, out: train(
@@ -434,10 +552,27 @@ def finished_run(templates, tmp_path_factory):
     return root, root / "outputs" / "e" / "splatfacto" / "t"
 
 
-def prepare(case: Case, tmp_path: Path, templates, finished_run) -> Path:
+@pytest.fixture(scope="module")
+def finished_study(templates, tmp_path_factory):
+    """A finished 3-step kc-bench study (``study()``) of splatfacto on its own copy of the COLMAP scene."""
+    root = tmp_path_factory.mktemp("hostile-study")
+    shutil.copytree(templates["colmap"], root / "scene")
+    assert kc_bench.entrypoint(study()(root, root / "unused")) == 0
+    return root
+
+
+def prepare(case: Case, tmp_path: Path, templates, finished_run, request) -> Path:
     root = tmp_path / "case"
     root.mkdir()
-    if case.scene == "run":
+    if case.scene == "study":  # the study and its scene, each run's config.yml pointed at the case's copy
+        template = request.getfixturevalue("finished_study")
+        shutil.copytree(template / "scene", root / "scene")
+        shutil.copytree(template / "study", root / "study")
+        for config_path in (root / "study").rglob("config.yml"):
+            config = load_config(config_path)
+            config.pipeline.datamanager.dataparser.data = root / "scene"
+            save_config(config, config_path)
+    elif case.scene == "run":
         template_root, run_dir = finished_run
         shutil.copytree(template_root / "scene", root / "scene")
         shutil.copytree(run_dir, root / "run")
@@ -455,8 +590,8 @@ def prepare(case: Case, tmp_path: Path, templates, finished_run) -> Path:
 
 
 @pytest.mark.parametrize("case", CASES, ids=[f"cat{c.category}-{c.id}" for c in CASES])
-def test_hostile_input(case, tmp_path, templates, finished_run, capsys, monkeypatch):
-    root = prepare(case, tmp_path, templates, finished_run)
+def test_hostile_input(case, tmp_path, templates, finished_run, capsys, monkeypatch, request):
+    root = prepare(case, tmp_path, templates, finished_run, request)
     case.edit(root)
     out = tmp_path / "out"
     out.mkdir()
@@ -473,16 +608,21 @@ def test_hostile_input(case, tmp_path, templates, finished_run, capsys, monkeypa
     before = {k: v for k, v in tree_digest(tmp_path, exclude=out).items()
               if allowed is None or not k.startswith(str(allowed))}
     args = _fix_args(case.args(root, out), out)
+    capsys.readouterr()  # what building a template printed is not the command's
     code = TOOLS[case.tool](args)
     captured = capsys.readouterr()
     assert "Traceback" not in captured.err
     assert code == case.code, (code, captured.err[-2000:])
-    if case.code == 2:
+    if case.code in (2, 130):  # a user error, an interruption: one line
         lines = [line for line in captured.err.splitlines() if line.strip()]
-        assert len(lines) == 1 and lines[0].startswith(f"{case.tool}: error: "), captured.err
+        kind = "error: " if case.code == 2 else "interrupted"
+        assert len(lines) == 1 and lines[0].startswith(f"{case.tool}: {kind}"), captured.err
         assert case.fragment in lines[0], lines[0]
     else:
         assert case.fragment in captured.out + captured.err
+        if case.note_lines is not None:
+            holding = [line for line in (captured.out + captured.err).splitlines() if case.fragment in line]
+            assert len(holding) == case.note_lines, holding
     after = {k: v for k, v in tree_digest(tmp_path, exclude=out).items()
              if allowed is None or not k.startswith(str(allowed))}
     assert before == after, sorted(set(before.items()) ^ set(after.items()))[:6]

@@ -301,7 +301,11 @@ CASES = [
          "no initial image pair found", edit=_photos, check=_older_scene_kept),
     # 2: hangs
     Case("viewer-port-out-of-range", 2, "kc-viewer", lambda root: ["--load-config", str(root / "run" / "config.yml"),
-                                                                  "--port", "70000"], 2, "is not a port number"),
+                                                                  "--port", "70000"], 2,
+         "--port must be an integer in 0..65535"),
+    Case("viewer-max-render-pixels-0", 5, "kc-viewer", lambda root: ["--load-config", str(root / "run" / "config.yml"),
+                                                                    "--max-render-pixels", "0"], 2,
+         "--max-render-pixels must be at least 1"),
     Case("viewer-host-not-of-this-machine", 2, "kc-viewer", lambda root: [
         "--load-config", str(root / "run" / "config.yml"), "--host", "10.255.255.1"], 2, "cannot listen on host"),
     Case("bench-ray-address-where-nothing-listens", 2, "kc-bench", lambda root: [

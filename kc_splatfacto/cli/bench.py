@@ -50,6 +50,12 @@ from kc_splatfacto.atomic import atomic_write_text
 from kc_splatfacto.cli.main import INTERRUPTED_EXIT, check_folder_can_hold, did_you_mean, path_flag, run_cli
 from kc_splatfacto.cli.train import override_config
 from kc_splatfacto.data.detect import AutoDataParserConfig
+from kc_splatfacto.engine.checkpoints import (
+    CHECKPOINT_DIR,
+    checkpoint_step,
+    list_checkpoints,
+    remove_orphan_temp_files,
+)
 from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.optimizers import SPLATFACTO_SCHEDULE_STEPS  # ``--steps-scale auto``: budget / this
 from kc_splatfacto.engine.validation import ConfigValueError, validate_config
@@ -295,6 +301,12 @@ def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
     if args.resume or args.report_only:  # every folder of another setting refused before any run starts
         for spec in specs:
             check_same_settings(spec.run_dir, spec.config)
+    if args.resume and not args.report_only:
+        check_budget_reaches_checkpoints(specs)
+        for spec in specs:  # what a killed run left mid-write, a finished run's too: removed, one line each
+            remove_orphan_temp_files(spec.run_dir / CHECKPOINT_DIR,
+                                     announce=lambda line, spec=spec: print(f"[kc-bench] {spec.name}: {line}",
+                                                                            flush=True))
     if args.report_only:
         to_run = [spec for spec in specs if is_finished(spec.run_dir, spec.max_steps)]
         if not to_run:
@@ -324,6 +336,26 @@ def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
               file=sys.stderr, flush=True)
         raise StudyRunsFailed(len(failures))
     return paths
+
+
+def check_budget_reaches_checkpoints(specs: Sequence[RunSpec]) -> None:
+    """``--resume`` with a budget below the step a run's checkpoint already holds (a run that has no evaluation at
+    that budget to be reused with) would fail in that run, after the study started: refused before any run, in one
+    line naming the budget the runs reached."""
+    past = []
+    for spec in specs:
+        checkpoints = list_checkpoints(spec.run_dir / CHECKPOINT_DIR)
+        if checkpoints and checkpoint_step(checkpoints[-1]) > spec.max_steps and not is_finished(spec.run_dir,
+                                                                                                 spec.max_steps):
+            past.append((checkpoint_step(checkpoints[-1]), spec))
+    if past:
+        step, spec = max(past, key=lambda item: item[0])
+        raise BenchArgumentError(
+            f"--resume --max-num-iterations {spec.max_steps}: {len(past)} of the study's runs already went past that "
+            f"step ({spec.label_dir or spec.run_dir} has its checkpoint at step {step}) and have no evaluation at step "
+            f"{spec.max_steps} to be reused with; pass --max-num-iterations {step} (or more) to continue the study, or "
+            "another --runs-dir to start one of that budget"
+        )
 
 
 class StudyRunsFailed(Exception):

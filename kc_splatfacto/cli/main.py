@@ -1,5 +1,5 @@
-"""One wrapper for every command-line entry point: user errors as one line and exit code 2, Ctrl-C as one line and
-exit code 130, bugs with a traceback.
+"""One wrapper for every command-line entry point: user errors as one line and exit code 2, Ctrl-C (or SIGTERM) as
+one line and exit code 130, bugs with a traceback.
 
 ``--debug`` (anywhere on the command line) or ``KC_DEBUG=1`` shows the traceback of a user error too.
 """
@@ -11,7 +11,9 @@ import difflib
 import errno
 import os
 import re
+import signal
 import sys
+import threading
 import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -39,6 +41,8 @@ def run_cli(prog: str, main: Callable[[list[str]], int], argv: Sequence[str] | N
     shown = warnings.showwarning
     if not debug:  # a warning is one line for the user (`prog: warning: ...`), not a file:line and a source line
         warnings.showwarning = _one_line_warning(prog)
+    terminated: list[int] = []
+    previous_term = _term_as_interrupt(terminated)
     try:
         return main(argv)
     except UserError as exc:  # first: a user error may also be an OSError (CheckpointNotFoundError)
@@ -54,7 +58,8 @@ def run_cli(prog: str, main: Callable[[list[str]], int], argv: Sequence[str] | N
         if debug:
             raise
         detail = " ".join(str(exc).split()) if isinstance(exc, Interrupted) else ""
-        print(f"{prog}: interrupted (Ctrl-C){': ' + detail if detail else ''}", file=sys.stderr, flush=True)
+        how = "SIGTERM" if terminated else "Ctrl-C"
+        print(f"{prog}: interrupted ({how}){': ' + detail if detail else ''}", file=sys.stderr, flush=True)
         return INTERRUPTED_EXIT
     except OSError as exc:
         # a full disk or quota is the machine's state, not a bug: one line naming the file (writes are atomic, so
@@ -66,6 +71,25 @@ def run_cli(prog: str, main: Callable[[list[str]], int], argv: Sequence[str] | N
         return USER_ERROR_EXIT
     finally:
         warnings.showwarning = shown
+        if previous_term is not None:
+            signal.signal(signal.SIGTERM, previous_term)
+
+
+def _term_as_interrupt(received: list[int]):
+    """SIGTERM (``kill``, ``timeout``, a job scheduler) ends a tool as Ctrl-C does, where it would otherwise kill the
+    process without a word (exit 143): a KeyboardInterrupt, which the tools clean up after, then one line and exit
+    130. Installed only over the default handler, on the main thread (a tool that handles SIGTERM itself, as
+    kc-train's loop does, keeps its own); returns the handler to put back, or None when none was installed."""
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "SIGTERM"):
+        return None
+    if signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
+        return None
+
+    def interrupt(signum, frame):  # noqa: ARG001
+        received.append(signum)
+        raise KeyboardInterrupt
+
+    return signal.signal(signal.SIGTERM, interrupt)
 
 
 def _one_line_warning(prog: str) -> Callable[..., None]:

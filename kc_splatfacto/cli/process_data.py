@@ -21,7 +21,14 @@ import typing
 from pathlib import Path
 
 from kc_splatfacto.cli.main import ArgumentParser, run_cli
-from kc_splatfacto.data.sfm import TEST_EVERY, CameraModel, MatchingMethod, ProcessImagesConfig, process_images
+from kc_splatfacto.data.sfm import (
+    SEED_MAX,
+    TEST_EVERY,
+    CameraModel,
+    MatchingMethod,
+    ProcessImagesConfig,
+    process_images,
+)
 
 PROG = "kc-process-data"
 
@@ -49,7 +56,8 @@ def build_parser() -> ArgumentParser:
                              "seed points from the train views only")
     images.add_argument("--max-image-size", type=int, default=3200,
                         help="longer side SIFT sees; larger photos are downscaled for extraction (default: 3200)")
-    images.add_argument("--seed", type=int, default=0, help="random seed of COLMAP's RANSAC and mapper (default: 0)")
+    images.add_argument("--seed", type=int, default=0,
+                        help=f"random seed of COLMAP's RANSAC and mapper, 0..{SEED_MAX} (default: 0)")
     images.add_argument("--overwrite", action="store_true", help="replace images/, sparse/, colmap/ of --output-dir")
     images.add_argument("--verbose", action="store_true", help="show COLMAP's own log")
     return parser

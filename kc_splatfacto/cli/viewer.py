@@ -15,6 +15,7 @@ from pathlib import Path
 from kc_splatfacto.cli.main import add_run_arguments, existing_run_config, run_cli
 from kc_splatfacto.engine.base_config import ViewerConfig
 from kc_splatfacto.engine.run_io import load_run
+from kc_splatfacto.engine.validation import check_ranges
 from kc_splatfacto.viewer.viewer import Viewer, import_viser
 
 #: kc-viewer renders a still scene: a larger frame than the training viewer's budget allows
@@ -24,11 +25,12 @@ DEFAULT_MAX_RENDER_PIXELS = 800 * 600
 def open_viewer(load_config: Path, step: int | None = None, host: str = "127.0.0.1", port: int = 7007,
                 max_render_pixels: int = DEFAULT_MAX_RENDER_PIXELS):
     """The :class:`~kc_splatfacto.viewer.viewer.Viewer` of a finished run (serving; call ``serve_forever``)."""
+    config = ViewerConfig(enabled=True, host=host, port=port, max_render_pixels=max_render_pixels)
+    check_ranges(config)  # the flags' values checked where they enter, before the (slow) run loading
     import_viser()  # the install hint before the (slow) run loading
     loaded = load_run(load_config, step=step, device="cpu")
     test = loaded.test_dataset
     initial = test.cameras[0] if test is not None and len(test) else None
-    config = ViewerConfig(enabled=True, host=host, port=port, max_render_pixels=max_render_pixels)
     return Viewer(config, loaded.model, loaded.train_dataset, loaded.run_dir, training=False, initial_camera=initial)
 
 

@@ -34,6 +34,10 @@ CENTER_METHODS = ("poses", "none")
 # nerfstudio's ``rotation_matrix_between`` treats vectors as parallel below this cross-product size.
 PARALLEL_EPS = 1e-6
 CACHE_ENV = "KC_SPLATFACTO_CACHE"
+READ_ONLY_DATA_ENV = "KC_SPLATFACTO_READ_ONLY_DATA"
+"""folders (separated by ``os.pathsep``) whose scenes are read-only in intent whatever their mode bits say: derived
+images of a scene under one go to the cache, never into the scene (a team's shared data folder; the test suite sets
+it to ``../shared/data`` for itself and every command it starts)"""
 
 
 class DataParserError(UserError, ValueError):

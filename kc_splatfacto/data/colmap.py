@@ -43,7 +43,7 @@ from kc_splatfacto.data.base import (
     normalize_poses,
     scene_scale_of,
 )
-from kc_splatfacto.data.colmap_files import check_model_files
+from kc_splatfacto.data.colmap_files import check_model_files, import_pycolmap
 from kc_splatfacto.data.colmap_text import quaternion_rotation, read_text_model
 from kc_splatfacto.data.images import (
     derived_is_fresh,
@@ -193,7 +193,7 @@ def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
     """
     model_dir = Path(model_dir)
     try:
-        import pycolmap
+        pycolmap = import_pycolmap()
     except ImportError as exc:  # a declared dependency, left out of some GPU images (issue 36): text needs none
         if model_file(model_dir, "cameras").suffix == ".bin" or model_file(model_dir, "images").suffix == ".bin":
             raise ImportError(

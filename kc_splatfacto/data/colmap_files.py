@@ -17,8 +17,11 @@ points with a warning.
 from __future__ import annotations
 
 import math
+import signal
 import struct
+import threading
 from pathlib import Path
+from types import ModuleType
 
 from kc_splatfacto.data.base import DataParserError, read_text_file
 
@@ -317,3 +320,15 @@ def check_model_files(model_dir: Path, supported: tuple[str, ...]) -> None:
             check_points3d_bin(points, image_ids)
         else:
             check_points3d_txt(points, image_ids)
+
+
+def import_pycolmap() -> ModuleType:
+    """``import pycolmap``, keeping the SIGTERM handler Python had: pycolmap's import installs glog's failure handler
+    over it, which prints a stack dump and kills the process, so that ``kill`` would end a tool without its one line
+    (and a training without its checkpoint). An ImportError propagates, as the import's."""
+    handler = signal.getsignal(signal.SIGTERM) if threading.current_thread() is threading.main_thread() else None
+    import pycolmap
+
+    if handler is not None:
+        signal.signal(signal.SIGTERM, handler)  # the C-level handler back to Python's (or the default) one
+    return pycolmap

@@ -20,7 +20,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from kc_splatfacto.atomic import atomic_write_bytes, atomic_write_text
-from kc_splatfacto.data.base import CACHE_ENV, DataParserError, default_cache_dir
+from kc_splatfacto.data.base import CACHE_ENV, READ_ONLY_DATA_ENV, DataParserError, default_cache_dir
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".exr")
 # Folder under the user cache for derived images of scenes whose own folder is read-only.
@@ -161,11 +161,23 @@ def write_image_atomic(path: Path, image: np.ndarray) -> None:
     atomic_write_bytes(path, encoded.tobytes())
 
 
+def read_only_in_intent(folder: Path) -> bool:
+    """Whether ``folder`` is under one of the folders ``$KC_SPLATFACTO_READ_ONLY_DATA`` names."""
+    entries = [e for e in os.environ.get(READ_ONLY_DATA_ENV, "").split(os.pathsep) if e.strip()]
+    if not entries:
+        return False
+    resolved = Path(folder).resolve()
+    return any(resolved.is_relative_to(Path(entry).expanduser().resolve()) for entry in entries)
+
+
 def folder_is_writable(folder: Path) -> bool:
-    """Whether derived files may go into ``folder``: it allows writes by mode bits and by the OS.
+    """Whether derived files may go into ``folder``: it allows writes by mode bits and by the OS, and is not under a
+    folder ``$KC_SPLATFACTO_READ_ONLY_DATA`` names.
 
     Mode bits are checked too because a read-only shared scene stays read-only in intent even for root.
     """
+    if read_only_in_intent(folder):
+        return False
     try:
         mode = folder.stat().st_mode
     except OSError:

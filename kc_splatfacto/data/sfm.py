@@ -35,8 +35,10 @@ from typing import Literal
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
+from kc_splatfacto.data.colmap_files import import_pycolmap
 from kc_splatfacto.data.images import IMAGE_EXTENSIONS
 from kc_splatfacto.errors import Interrupted, UserError
+from kc_splatfacto.settings import choice_violations, integer, range_violations, setting
 
 #: COLMAP's image readers do not decode EXR; everything else in IMAGE_EXTENSIONS they do.
 SFM_IMAGE_EXTENSIONS = tuple(ext for ext in IMAGE_EXTENSIONS if ext != ".exr")
@@ -52,6 +54,10 @@ DEFAULT_FOCAL_FACTOR = 1.2
 WIDE_FOCAL_FACTOR = 0.7
 #: initial-pair thresholds of the last attempt (COLMAP's defaults: 16 degrees, 100 inliers)
 RELAXED_INIT_MIN_TRI_ANGLE = 4.0
+#: pycolmap's mapper keeps its random seed in a C++ int: 0 .. 2**31 - 1
+SEED_MAX = 2**31 - 1
+#: the smallest longer side SIFT is given (below it too few features survive to match)
+MIN_IMAGE_SIZE = 64
 RELAXED_INIT_MIN_NUM_INLIERS = 50
 
 MatchingMethod = Literal["auto", "exhaustive", "sequential", "spatial"]
@@ -77,11 +83,11 @@ class ProcessImagesConfig:
     camera_model: CameraModel = "SIMPLE_RADIAL"
     """COLMAP camera model (one camera shared when all photos have one size); distorted ones are undistorted to
     PINHOLE"""
-    num_train: int | None = None
+    num_train: int | None = setting(None, integer(1, optional=True))
     """a SPARS3R-style sparse split: this many train views, every 8th view for test, seed points from train only"""
-    max_image_size: int = 3200
+    max_image_size: int = setting(3200, integer(MIN_IMAGE_SIZE))
     """longer side of the image SIFT sees (larger photos are downscaled for extraction only)"""
-    seed: int = 0
+    seed: int = setting(0, integer(0, SEED_MAX))
     """random seed of COLMAP's RANSAC and mapper (results are repeatable up to multi-threading order)"""
     overwrite: bool = False
     """replace images/, sparse/ and colmap/ of an existing output folder"""
@@ -533,17 +539,14 @@ def _holds_files(folder: Path) -> bool:
 def _process_images(config: ProcessImagesConfig, progress: Callable[[str], None]) -> ProcessResult:
     photos = Path(config.data)
     scene = Path(config.output_dir)
+    check_config(config)
     names = list_photos(photos)
-    if config.num_train is not None and config.num_train < 1:
-        raise ProcessDataError(f"--num-train must be at least 1, got {config.num_train}")
     if config.num_train is not None and config.num_train >= len(names):
         raise ProcessDataError(
             f"--num-train {config.num_train} leaves no test view among the {len(names)} photos in {photos}: "
             f"every {TEST_EVERY}th view is a test view, so at most {len(names) - math.ceil(len(names) / TEST_EVERY)} "
             "can train"
         )
-    if config.max_image_size < 64:
-        raise ProcessDataError(f"--max-image-size must be at least 64 pixels, got {config.max_image_size}")
     check_photos(photos, names)
     prepare_output(scene, photos, config.overwrite)
     created = missing_folders(scene.parent)
@@ -559,6 +562,14 @@ def _process_images(config: ProcessImagesConfig, progress: Callable[[str], None]
             remove_empty_folders(created)
     result.scene = scene
     return result
+
+
+def check_config(config: ProcessImagesConfig) -> None:
+    """Every value of ``config`` within its choices and its declared range (``setting`` beside each field), checked
+    before any photo is read: a :class:`ProcessDataError` naming the flag, not pycolmap's TypeError later."""
+    for violation in (*choice_violations(config), *range_violations(config)):
+        flag = "--" + violation.name.replace("_", "-")
+        raise ProcessDataError(f"{flag} {violation.value!r} is not allowed: {flag} must be {violation.allowed}")
 
 
 def missing_folders(folder: Path) -> list[Path]:
@@ -584,7 +595,7 @@ def remove_empty_folders(folders: list[Path]) -> None:
 def _process_into(scene: Path, photos: Path, names: list[str], config: ProcessImagesConfig,
                   progress: Callable[[str], None]) -> ProcessResult:
     """The stages of :func:`process_images`, writing the scene into ``scene`` (the staging folder)."""
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     work = scene / "colmap"
     work.mkdir()

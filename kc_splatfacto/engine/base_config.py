@@ -11,13 +11,23 @@ module imports none of them: it is a leaf of the engine.
 from __future__ import annotations
 
 import random
+import re
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from kc_splatfacto.errors import UserError
-from kc_splatfacto.settings import SEED_MAX, integer, real, setting
+from kc_splatfacto.settings import SEED_MAX, Rule, integer, real, setting
+
+DEVICE_NAME = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")
+"""the devices a run can train on: the CPU, or CUDA through gsplat (any other torch device has no rasterizer)"""
+
+
+def device_name() -> Rule:
+    """``--machine.device``'s range: checked with the other settings, before torch is asked to parse it."""
+    return Rule(lambda value: isinstance(value, str) and DEVICE_NAME.match(value) is not None,
+                "'auto', 'cpu', 'cuda' or 'cuda:N' (N the index of a GPU)")
 
 
 def _gsplat_importable() -> bool:
@@ -34,17 +44,25 @@ class MachineConfig:
 
     seed: int = setting(42, integer(0, SEED_MAX))
     """seed of torch, numpy and python's random"""
-    device: str = "auto"
+    device: str = setting("auto", device_name())
     """'auto' (CUDA when available and gsplat imports, else CPU), 'cpu', 'cuda', 'cuda:1', ..."""
+    memory_budget_gb: float = setting(0.0, real(0.0))
+    """memory (GB; RAM, or the GPU's on CUDA) past which density control adds no Gaussians, so that a run stops
+    growing instead of being killed; 0: 85% of what the process may use when the run starts (engine/memory.py)"""
 
     def resolve_device(self) -> torch.device:
         if self.device == "auto":
             # CUDA only pays with gsplat's kernels: the rasterizer "auto" refuses CUDA tensors without
             # gsplat (the compiled rasterizer is CPU-only), so without gsplat training stays on the CPU
             return torch.device("cuda" if torch.cuda.is_available() and _gsplat_importable() else "cpu")
+        if not device_name().check(self.device):  # a config built in Python, never validated
+            raise UserError(f"--machine.device {self.device!r} is not a device: use {device_name().allowed}")
         device = torch.device(self.device)
         if device.type == "cuda" and not torch.cuda.is_available():
             raise UserError(f"--machine.device {self.device}: CUDA is not available here; use 'cpu' or 'auto'")
+        if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
+            raise UserError(f"--machine.device {self.device}: this machine has {torch.cuda.device_count()} GPU(s), "
+                            f"numbered from 0; use 'cuda' or 'cuda:0'")
         return device
 
     def seed_everything(self) -> None:

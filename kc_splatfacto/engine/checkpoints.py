@@ -11,6 +11,7 @@ from __future__ import annotations
 import errno
 import pickle
 import re
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -162,14 +163,24 @@ def check_checkpoint_fits(checkpoint: dict[str, Any], config: Any, path: Path, s
         )
 
 
-def remove_orphan_temp_files(directory: Path) -> list[Path]:
-    """Remove checkpoint temp files a hard kill (kill -9, power loss) left mid-write in ``directory``."""
+def remove_orphan_temp_files(directory: Path, announce: Callable[[str], object] | None = None) -> list[Path]:
+    """Remove checkpoint temp files a hard kill (kill -9, power loss) left mid-write in ``directory``; ``announce``
+    (e.g. ``print``) gets one line naming them and their size when there were any."""
     directory = Path(directory)
     if not directory.is_dir():
         return []
     orphans = [p for p in directory.iterdir() if TEMP_PATTERN.match(p.name) and p.is_file()]
+    size = 0
     for orphan in orphans:
+        try:
+            size += orphan.stat().st_size
+        except OSError:
+            pass
         orphan.unlink(missing_ok=True)
+    if orphans and announce is not None:
+        names = ", ".join(sorted(p.name for p in orphans))
+        announce(f"removed {len(orphans)} unfinished checkpoint file{'s' if len(orphans) > 1 else ''} "
+                 f"({size / 1e6:.1f} MB) that a killed run left in {directory}: {names}")
     return orphans
 
 

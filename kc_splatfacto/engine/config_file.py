@@ -203,6 +203,24 @@ def check_lines_kept(path: Path | str, config: Any, involved: dict[str, Any], tr
                           f"{restore}")
 
 
+def check_method_name(path: Path | str, method_name: str, written_by: Any) -> None:
+    """A :class:`ConfigFileError` blaming ``method_name`` in ``path`` when it is no registered method while the
+    checkpoint beside it was written by ``written_by`` (the recorded method): a name misspelt in an edit, not a
+    checkpoint of another run."""
+    try:
+        methods = discover_methods()
+    except Exception:  # noqa: BLE001  a broken plugin: its own command says so; the caller's message stands
+        return
+    if not methods or method_name in methods or not isinstance(written_by, str) or written_by == method_name:
+        return
+    close = difflib.get_close_matches(method_name, list(methods), n=1)
+    hint = f" (did you mean {close[0]}?)" if close else ""
+    raise ConfigFileError(
+        f"{path}: method_name {method_name!r} is not a registered method{hint}, and the run's checkpoint was written "
+        f"by {written_by!r}: put back 'method_name: {written_by}' in that file"
+    )
+
+
 def _dotted(value: Any, name: str) -> Any:
     for part in name.split("."):
         value = getattr(value, part, None)

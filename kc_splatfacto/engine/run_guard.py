@@ -43,7 +43,7 @@ from kc_splatfacto.engine.checkpoints import (
     load_checkpoint,
     remove_orphan_temp_files,
 )
-from kc_splatfacto.engine.config_file import check_lines_kept, read_config_file
+from kc_splatfacto.engine.config_file import check_lines_kept, check_method_name, read_config_file
 from kc_splatfacto.engine.datamanager import DataManager
 from kc_splatfacto.errors import ResumeError, UserError
 from kc_splatfacto.metrics import SSIM_WINDOW
@@ -166,7 +166,8 @@ def differences(stored: TrainerConfig, current: TrainerConfig, parser_settings: 
 RESUMABLE_FIELDS = (
     "method_name", "experiment_name", "output_dir", "timestamp", "max_num_iterations", "steps_per_save",
     "steps_per_eval_all_images", "eval_at_steps", "final_lpips_nets", "eval_lpips_nets", "save_only_latest_checkpoint", "load_dir",
-    "load_step", "resume_from_other_run", "max_consecutive_bad_steps", "machine.device", "logging",
+    "load_step", "resume_from_other_run", "max_consecutive_bad_steps", "machine.device", "machine.memory_budget_gb",
+    "logging",
     "pipeline.datamanager.dataparser", "pipeline.datamanager.eval_split",
     "pipeline.model.rasterizer",
 )
@@ -270,6 +271,9 @@ def plan_run(config: TrainerConfig, map_location: Any = "cpu") -> RunPlan:
         stored_parser = comparable_dataparser(stored)
         problems = differences(stored, config, stored_parser=stored_parser, current_parser=dataparser)
         if problems and not config.resume_from_other_run:
+            if stored.method_name != config.method_name:  # a misspelt method_name, not another run's folder
+                check_method_name(stored_path, stored.method_name,
+                                  (checkpoint.get(RUN_IDENTITY_KEY) or {}).get("method_name"))
             check_lines_kept(stored_path, stored, _fields_behind(problems, checkpoint),
                              f"it differs from this command ({'; '.join(problems)})")
         if not problems:
@@ -296,9 +300,15 @@ def plan_run(config: TrainerConfig, map_location: Any = "cpu") -> RunPlan:
         check_checkpoint_fits(checkpoint, config, path, same_method=False)
         return RunPlan(dataparser=dataparser, checkpoint=checkpoint, checkpoint_path=path)
     check_checkpoint_fits(checkpoint, config, path)  # the run's config.yml and its checkpoint must agree
-    check_writable_folder(run_dir, "the run folder")
+    if config.resume_from_other_run and not os.access(run_dir, os.W_OK | os.X_OK):
+        # a run folder this user cannot write (another user's): continued from its checkpoint in a new run folder
+        return RunPlan(dataparser=dataparser, checkpoint=checkpoint, checkpoint_path=path)
+    check_writable_folder(run_dir, "the run folder",
+                          f"a resume writes there; copy it to a folder you own (cp -r {run_dir} COPY) and pass "
+                          "--load-dir COPY, or pass --resume-from-other-run True to continue from its checkpoint in a "
+                          "new run folder under --output-dir")
     check_metrics_log(run_dir / "metrics.jsonl")
-    remove_orphan_temp_files(run_dir / CHECKPOINT_DIR)
+    remove_orphan_temp_files(run_dir / CHECKPOINT_DIR, announce=lambda line: print(line, flush=True))
     trimmed = trim_metrics(run_dir / "metrics.jsonl", step)
     return RunPlan(dataparser=dataparser, run_dir=run_dir, checkpoint=checkpoint, checkpoint_path=path,
                    trimmed_records=trimmed)

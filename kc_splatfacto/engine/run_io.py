@@ -19,7 +19,7 @@ from kc_splatfacto.engine.checkpoints import (
     load_checkpoint,
 )
 from kc_splatfacto.engine.config import load_config
-from kc_splatfacto.engine.config_file import check_lines_kept
+from kc_splatfacto.engine.config_file import check_lines_kept, check_method_name
 from kc_splatfacto.engine.pipeline import Pipeline
 from kc_splatfacto.engine.trainer import TrainerConfig
 from kc_splatfacto.errors import UserError
@@ -90,6 +90,7 @@ def load_run(config_path: Path | str, step: int | None = None, device: str | tor
         check_checkpoint_fits(checkpoint, config, checkpoint_path)
     except CheckpointMismatchError as exc:  # a config.yml that lost a line is not another run's
         check_lines_kept(config_path, config, exc.recorded, f"it does not fit the checkpoint {checkpoint_path}")
+        check_method_name(config_path, config.method_name, exc.recorded.get("method_name"))
         raise
     pipeline.load_state_dict({"model": checkpoint["model"]}, step=int(checkpoint["step"]))
     model = pipeline.model

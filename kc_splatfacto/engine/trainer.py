@@ -48,6 +48,7 @@ from kc_splatfacto.engine.config_file import save_config
 from kc_splatfacto.engine.evaluation import FINAL_LPIPS_NETS
 from kc_splatfacto.engine.gradient_shares import gradient_shares
 from kc_splatfacto.engine.loggers import check_backends, logging_sinks
+from kc_splatfacto.engine.memory import MemoryGuard
 from kc_splatfacto.engine.metrics_log import LoggingFailedError, MetricsWriter, ProgressBar
 from kc_splatfacto.engine.optimizers import OptimizersConfig
 from kc_splatfacto.engine.pipeline import Pipeline, PipelineConfig
@@ -179,6 +180,10 @@ class StepLosses(Mapping[str, float]):
         return len(self._terms) + 1
 
 
+def _warn_one_line(line: str) -> None:
+    warnings.warn(line, RuntimeWarning, stacklevel=3)
+
+
 class TrainingDivergedError(RuntimeError):
     """Too many consecutive non-finite steps."""
 
@@ -215,6 +220,7 @@ class Trainer:
         self._side_s = 0.0  # logging work inside a step (gradient shares), kept out of train_s
         self._side_cpu_s = 0.0
         self._bad_in_a_row = 0
+        self._memory: MemoryGuard | None = None  # the run's memory budget (setup)
         self._t0 = self._lap_start = time.perf_counter()  # both restarted when train() begins
         self.callbacks: list[TrainingCallback] = []
         self.record_sinks: list[RecordSink] = []
@@ -282,6 +288,29 @@ class Trainer:
         self.datamanager.save_dataparser_transform(self.run_dir / "dataparser_transforms.json")
         if checkpoint is not None:
             self._restore(checkpoint)
+        self._start_memory_guard(checkpoint.get("memory_cap") if checkpoint is not None else None)
+
+    def _start_memory_guard(self, cap: int | None) -> None:
+        """The run's memory budget: a warning when the Gaussian cap would not fit it; a cap the checkpoint recorded
+        (the budget was reached before) applied again, so a resumed run grows as the uninterrupted one."""
+        cameras = self.datamanager.train_dataset.cameras
+        pixels = int((cameras.widths.long() * cameras.heights.long()).max())
+        self._memory = MemoryGuard.start(self.device, self.config.machine.memory_budget_gb,
+                                         self.config.pipeline.model.max_num_gaussians, self.model.num_points, pixels,
+                                         announce=_warn_one_line)
+        if cap is not None:
+            self._memory.cap = int(cap)
+            self.model.cap_gaussians(int(cap))
+
+    def _check_memory(self, step: int) -> None:
+        """After density control changed the count: growth capped at the memory budget (one line, one record)."""
+        if self._memory is None:
+            return
+        line = self._memory.after_density_control(step, self.model.num_points, self.model.cap_gaussians)
+        if line is not None:
+            self.writer.write({"kind": "memory_cap", "step": step, "elapsed_s": self._elapsed(),
+                               "train_s": self._train_s, "gaussian_count": self.model.num_points,
+                               "budget_bytes": self._memory.budget})
 
     def _new_run_dir(self) -> Path:
         base = self.config.base_dir(self.dataparser.data)
@@ -317,6 +346,7 @@ class Trainer:
             "elapsed_s": self._elapsed(),
             "train_s": self._train_s,
             "train_cpu_s": self._train_cpu_s,
+            "memory_cap": self._memory.cap if self._memory is not None else None,
         }
 
     def save_checkpoint(self, step: int) -> Path:
@@ -466,6 +496,7 @@ class Trainer:
             if any(report.values()):
                 self.writer.write({"kind": "densify", "step": step + 1, "elapsed_s": self._elapsed(),
                                    "train_s": self._train_s, "gaussian_count": self.model.num_points, **report})
+                self._check_memory(step + 1)
         else:
             with warnings.catch_warnings():  # only around a skipped step: a filter change re-arms once-only warnings
                 warnings.filterwarnings("ignore", message=_SCHEDULE_BEFORE_OPTIMIZER)

@@ -662,3 +662,11 @@ class SplatfactoModel(torch.nn.Module):
                                                     outputs["info"], lr=means_lr)
         return self.strategy.step_post_backward(self.gauss_params, optimizers, self.strategy_state, self.step,
                                                 outputs["info"])
+
+    def cap_gaussians(self, count: int) -> None:
+        """Density control adds no Gaussians past ``count`` from now on (a memory budget reached): the strategy's
+        cap lowered (``max_gaussians``; an MCMC strategy's ``cap_max``), never raised."""
+        for name in ("max_gaussians", "cap_max"):
+            if hasattr(self.strategy, name):
+                current = getattr(self.strategy, name)
+                setattr(self.strategy, name, count if current is None else min(int(current), int(count)))

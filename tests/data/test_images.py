@@ -1,6 +1,7 @@
 """Image decoding edge cases (issue 26): float images scaled by their real range (or refused), decompression bombs
 refused before decoding, alpha kept through the downscale cache whatever the source's suffix."""
 
+import os
 import struct
 import zlib
 
@@ -8,8 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from kc_splatfacto.data.base import DataParserError
-from kc_splatfacto.data.images import downscaled_paths, image_size, read_image
+from kc_splatfacto.data.base import READ_ONLY_DATA_ENV, DataParserError
+from kc_splatfacto.data.images import derived_root, downscaled_paths, image_size, read_image
 
 
 def test_float_tiff_in_0_255_reads_as_its_8_bit_values(tmp_path):
@@ -70,3 +71,53 @@ def test_alpha_survives_the_downscale_cache(tmp_path, name):
     np.testing.assert_array_equal(got, expected)  # lossless, alpha included
     assert cached.suffix == ".png"
     assert downscaled_paths([images / name], images, 2) == [cached]  # found again, not rewritten
+
+
+# ------------------------------------------------------------------------------------------------ read-only in intent
+# Issue 58 item 6: with ../shared writable (a contributor's clone), commands the suite starts (ns-train, the GPU
+# campaign's dry run) wrote images_4 / images_8 into the shared scenes. A folder named by $KC_SPLATFACTO_READ_ONLY_DATA
+# is read-only in intent: derived images of its scenes go to the cache, in this process and in every one it starts.
+
+
+def test_a_scene_under_read_only_data_derives_into_the_cache_though_writable(tmp_path, monkeypatch):
+    from tests.hostile_scenes import colmap_scene, tree_digest
+
+    data = tmp_path / "shared-copy"
+    scene = colmap_scene(data / "scene")
+    images = scene / "images"
+    paths = sorted(images.iterdir())
+    monkeypatch.setenv("KC_SPLATFACTO_CACHE", str(tmp_path / "cache"))
+    monkeypatch.delenv(READ_ONLY_DATA_ENV, raising=False)
+    assert derived_root(images, None) == scene  # writable and not named: the scene holds its derived images
+    monkeypatch.setenv(READ_ONLY_DATA_ENV, f"{tmp_path / 'elsewhere'}{os.pathsep}{data}")
+    before = tree_digest(data)
+    assert (tmp_path / "cache") in derived_root(images, None).parents
+    written = downscaled_paths(paths, images, 2, None)
+    assert tree_digest(data) == before  # nothing written into the (writable) scene
+    assert all((tmp_path / "cache") in p.parents and p.is_file() for p in written)
+
+
+def test_commands_the_suite_starts_treat_a_writable_shared_folder_as_read_only(tmp_path):
+    """A kc-train started as the suite starts commands (its environment inherited) on a writable copy of a scene under
+    the folder the suite names: the downscaled images go to the cache, the copy is unchanged."""
+    import subprocess
+    import sys
+
+    from tests.conftest import SHARED_DATA
+    from tests.hostile_scenes import colmap_scene, tree_digest
+
+    assert str(SHARED_DATA.resolve()) in os.environ[READ_ONLY_DATA_ENV].split(os.pathsep)  # set by tests/conftest.py
+    data = tmp_path / "shared-copy"
+    scene = colmap_scene(data / "scene")
+    before = tree_digest(data)
+    env = {**os.environ, "KC_SPLATFACTO_CACHE": str(tmp_path / "cache"), "OMP_WAIT_POLICY": "PASSIVE",
+           READ_ONLY_DATA_ENV: os.pathsep.join([os.environ[READ_ONLY_DATA_ENV], str(data)])}
+    done = subprocess.run(
+        [sys.executable, "-m", "kc_splatfacto.cli.train", "splatfacto", "--data", str(scene), "--output-dir",
+         str(tmp_path / "out"), "--max-num-iterations", "1", "--steps-per-eval-all-images", "0",
+         "--logging.progress-bar", "False", "--final-lpips-nets", "--machine.device", "cpu",
+         "--pipeline.model.num-downscales", "0", "colmap",
+         "--downscale-factor", "2"], env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert tree_digest(data) == before
+    assert list((tmp_path / "cache").rglob("images_2"))

@@ -21,6 +21,8 @@ def bad_values(allowed: str):
         return ["/abs/path", "..", "a/b", ""]
     if allowed.startswith("a list"):
         return [(-1,)] if "at least" in allowed else [("squeezenet",)]
+    if allowed.startswith("'auto', 'cpu', 'cuda'"):  # a device
+        return ["tpu", "CPU", "cuda:", "cuda:-1", "mps", "", 0, None]
     values = [True, "1", float("nan")]
     if "finite" in allowed:
         values += [math.inf, -math.inf]
@@ -88,6 +90,32 @@ def test_every_numeric_field_declares_its_range(make):
     config = make()
     declared = {name for name, _ in declared_rules(config)}
     assert set(numeric_fields(config)) <= declared
+
+
+#: string fields that take any text: names a run folder or a logger shows, an address the viewer binds (checked there)
+FREE_TEXT_FIELDS = {"method_name", "logging.wandb_project", "viewer.host"}
+
+
+def text_fields(config, prefix=""):
+    """Dotted names of every str field of the config tree whose annotation is no Literal (a choice tyro checks)."""
+    import typing
+
+    hints = typing.get_type_hints(type(config))
+    for field in dataclasses.fields(config):
+        value = getattr(config, field.name)
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            yield from text_fields(value, f"{prefix}{field.name}.")
+        elif isinstance(value, str) and typing.get_origin(hints.get(field.name)) is not typing.Literal:
+            yield f"{prefix}{field.name}"
+
+
+@pytest.mark.parametrize("make", CONFIGS)
+def test_every_text_field_that_reaches_a_library_declares_its_range(make):
+    """Issue 58: a value a user gives is checked where it enters (``--machine.device tpu`` once reached torch's
+    parser inside the trainer, a traceback): every text field is a choice, declares a rule, or takes any text."""
+    config = make()
+    declared = {name for name, _ in declared_rules(config)}
+    assert set(text_fields(config)) - declared <= FREE_TEXT_FIELDS
 
 
 def test_each_field_rule_is_declared_once_beside_its_field():
