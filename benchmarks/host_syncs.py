@@ -165,7 +165,8 @@ class HostSyncDetector:
                 elif name == "masked_fill" and len(args) > 2 and isinstance(args[2], torch.Tensor) \
                         and not detector.is_host(args[2]):
                     detector._flag("masked_fill with a device value")
-                elif name == "repeat_interleave" and kwargs.get("output_size") is None and len(args) < 4:
+                elif name == "repeat_interleave" and "Tensor" in func._overloadname \
+                        and kwargs.get("output_size") is None:  # the output's size summed on the host
                     detector._flag("repeat_interleave without output_size")
                 return out
 
