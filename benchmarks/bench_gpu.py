@@ -8,20 +8,23 @@ prints a table (ms per step) and the kc/splatfacto ratio (target <= 1.10x).
 
 ``--count-syncs`` adds, per method, the host synchronisations of a training step (CUDA: torch's sync debug mode,
 which warns at each synchronising call) and the kernel launches (the profiler's ``cudaLaunchKernel`` calls), counted
-over a few steps after the timed ones. ``--device cpu`` runs the same plumbing on the CPU (our rasterizer in the
-simple loop; no synchronisation or launch counts): the GPU campaign's dry run (benchmarks/gpu_campaign.py).
+over a few ordinary steps after the timed ones, and lists the synchronisations by source line (``path:line
+function`` of the innermost package frame, ``host_syncs.source_of``: the same attribution as the CPU-side detector
+of benchmarks/host_syncs.py, so the two lists compare line by line). ``--device cpu`` runs the same plumbing on the
+CPU (our rasterizer in the simple loop; the synchronisations are the CPU-side detector's, on the torch path; no
+launch counts): the GPU campaign's dry run (benchmarks/gpu_campaign.py).
 
     python benchmarks/bench_gpu.py [--scene castle-P30] [--downscale 1] [--warmup-steps 3000] [--steps 200] [--rounds 3]
         [--device cuda] [--count-syncs]
 """
 
-import os
 
 import kc_splatfacto  # noqa: E402,F401  (sets OMP_WAIT_POLICY before torch loads)
 
 import argparse  # noqa: E402
 import statistics  # noqa: E402
 import sys  # noqa: E402
+from collections import Counter  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 import warnings  # noqa: E402
@@ -31,6 +34,7 @@ import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_train import SHARED_DATA, TARGET_RATIO, make_config  # noqa: E402
+from host_syncs import count_ordinary_steps, source_of  # noqa: E402
 
 from kc_splatfacto.engine.metrics_log import MetricsWriter  # noqa: E402
 from kc_splatfacto.engine.trainer import PARAMETER_SCAN_EVERY, PHASES, Trainer  # noqa: E402
@@ -54,11 +58,21 @@ LAUNCH_EVENTS = ("cudaLaunchKernel", "cuLaunchKernel", "cudaLaunchKernelExC", "c
 
 def count_syncs_and_launches(run_steps, steps: int) -> dict:
     """Host synchronisations (torch's sync debug mode warns at each) and kernel launches (the profiler's launch
-    calls) per step while ``run_steps()`` takes ``steps`` steps on CUDA."""
+    calls) per step while ``run_steps()`` takes ``steps`` steps on CUDA; ``sources``: the synchronisations per step
+    by where they come from (:func:`host_syncs.source_of`, else the warning's own file and line)."""
     from torch.profiler import ProfilerActivity, profile
 
-    with warnings.catch_warnings(record=True) as caught:
+    sources: Counter = Counter()
+
+    def record(message, category, filename, lineno, file=None, line=None):  # noqa: ARG001
+        # called while the synchronising call returns to Python (torch turns its C++ warning into a Python one
+        # there), so the stack is the caller's
+        if "synchroniz" in str(message).lower():
+            sources[source_of(sys._getframe(1)) or f"{filename}:{lineno}"] += 1
+
+    with warnings.catch_warnings():  # restores showwarning on the way out
         warnings.simplefilter("always")
+        warnings.showwarning = record
         torch.cuda.set_sync_debug_mode("warn")
         try:
             with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
@@ -66,9 +80,9 @@ def count_syncs_and_launches(run_steps, steps: int) -> dict:
                 torch.cuda.synchronize()
         finally:
             torch.cuda.set_sync_debug_mode("default")
-    syncs = sum("synchroniz" in str(w.message).lower() for w in caught)
     launches = sum(e.count for e in prof.key_averages() if e.key in LAUNCH_EVENTS)
-    return {"syncs": syncs / steps, "launches": launches / steps}
+    return {"syncs": sum(sources.values()) / steps, "launches": launches / steps,
+            "sources": {k: v / steps for k, v in sources.items()}}
 
 
 def ordinary_steps(first: int, steps: int) -> list[int]:
@@ -84,15 +98,22 @@ def ordinary_steps(first: int, steps: int) -> list[int]:
 
 def trainer_syncs(trainer, args, steps: int = 5) -> dict:
     """:func:`count_syncs_and_launches` of ``steps`` ordinary training steps of our trainer (``train_iteration``: no
-    evaluation, checkpoint, logging or parameter scan among them; NaN on the CPU: neither count exists there).
+    evaluation, checkpoint, logging or parameter scan among them). On the CPU the synchronisations are the CPU-side
+    detector's on the torch path (``host_syncs.count_ordinary_steps``, one more step taken first to fill the torch
+    path's caches), the rasterizer's left out (gsplat's on CUDA); no launch count.
 
     The first campaign (2026-11-28) counted ``trainer.train()`` over 5 steps ending at its last step, whose evaluation
     of every test image and checkpoint were counted with them: 54 and 25 "per step" on castle-P30 and fern-12."""
-    if args.device != "cuda":
-        return {"syncs": float("nan"), "launches": float("nan")}
-    numbers = ordinary_steps(trainer.config.max_num_iterations, steps)
     trainer._writer = MetricsWriter(trainer.run_dir / "metrics.jsonl")  # train() closed its own; steps write records
     try:
+        if args.device != "cuda":
+            numbers = ordinary_steps(trainer.config.max_num_iterations, steps + 1)
+            found = count_ordinary_steps(trainer, numbers, warm=1)
+            sources = Counter()
+            for (kind, where), n in found.ours().items():
+                sources[f"{where} [{kind}]"] += n / steps
+            return {"syncs": sum(sources.values()), "launches": float("nan"), "sources": dict(sources)}
+        numbers = ordinary_steps(trainer.config.max_num_iterations, steps)
         return count_syncs_and_launches(lambda: [trainer.train_iteration(s) for s in numbers], steps)
     finally:
         trainer.writer.close()
@@ -171,8 +192,18 @@ def reference_loop(args, state, dataset, steps):
     if args.count_syncs and args.device == "cuda":
         row.update(count_syncs_and_launches(lambda: [one(s % len(images)) for s in range(5)], 5))
     elif args.count_syncs:
-        row.update(syncs=float("nan"), launches=float("nan"))
+        row.update(syncs=float("nan"), launches=float("nan"), sources={})
     return row
+
+
+def print_sync_sources(rows: dict[str, list[dict]], counted_by: str) -> None:
+    """Each method's synchronisations per ordinary step by source (its last round), most frequent first."""
+    print(f"\nhost synchronisations per step by source ({counted_by}):")
+    for method, rounds in rows.items():
+        sources = rounds[-1].get("sources") or {}
+        print(f"  {method}: {sum(sources.values()):.1f}" + ("" if sources else " (none, or not counted here)"))
+        for where, n in sorted(sources.items(), key=lambda kv: (-kv[1], kv[0])):
+            print(f"    {n:6.2f}  {where}")
 
 
 def main() -> int:
@@ -213,7 +244,7 @@ def main() -> int:
                 rows[method].append(timed_method(method, args, out, run_dir, n_gaussians))
             rows["gsplat-simple-loop"].append(reference_loop(args, state, trainer.datamanager.train_dataset,
                                                              args.steps))
-    median = {m: {k: statistics.median(r[k] for r in rs) for k in rs[0]} for m, rs in rows.items()}
+    median = {m: {k: statistics.median(r[k] for r in rs) for k in rs[0] if k != "sources"} for m, rs in rows.items()}
     base = median["splatfacto"]["step"]
     print(f"\nms per step on {device_name} (median of {args.rounds} rounds x {args.steps} steps; "
           f"{args.scene.name} {width}x{height}, {n_gaussians} Gaussians; phases "
@@ -227,6 +258,9 @@ def main() -> int:
         cells += [f"{values['step']:.2f}", f"{values['step'] / base:.3f}x", f"{int(values['gaussians'])}"]
         cells += [f"{values[c]:.1f}" for c in counts]
         print(f"| {method} | " + " | ".join(cells) + " |")
+    if args.count_syncs:
+        print_sync_sources(rows, "CUDA's sync debug mode" if args.device == "cuda" else
+                           "the CPU-side detector on the torch path (benchmarks/host_syncs.py), the rasterizer's left out")
     simple = median["gsplat-simple-loop"]["step"]
     print(f"\nour splatfacto / the gsplat-style loop: {base / simple:.3f}x (target <= 1.20x: "
           f"{'met' if base / simple <= 1.20 else 'NOT met'}; the loop has no density control, no schedules, no "

@@ -162,9 +162,10 @@ LEASES: dict[str, tuple[Call, ...]] = {
     # a-d of issue 36 in one call (a second call risks the machine going back in the turnaround, and a new start
     # costs two of the fifteen minutes); the GPU tests and the bench before the whole suite, which gets what is left
     "full": (
-        # measured in the first campaign (H200, 2026-11-28): setup 63-82 s, tests 55 s, a 300-step run 15-18 s per
-        # method (about 10 s of it Python's and CUDA's start), bench 142 s for both scenes
-        Call((("setup", 100), ("tests", 60), ("train", 80), ("bench", 160), ("suite", 145), ("pack", 15)), "call1"),
+        # measured in the first campaigns (H200, 2026-11-28): setup 63-82 s, tests 55-61 s (a 60 s budget cut them
+        # once: 90 leaves room), a 300-step run 15-18 s per method (about 10 s of it Python's and CUDA's start),
+        # bench 142 s for both scenes; the suite gets what is left of the 600 s a command may run
+        Call((("setup", 100), ("tests", 90), ("train", 80), ("bench", 160), ("suite", 125), ("pack", 15)), "call1"),
     ),
     # e of issue 36, a lease of its own (any later session with a GPU): runs that finish come back, and the next
     # study lease skips them; a run still going when the lease ends is lost
@@ -526,24 +527,67 @@ GPU_TESTS = ("tests/render/test_gsplat_cuda.py", "tests/losses/test_wavelets.py:
              "tests/nerfstudio_plugin/test_cuda.py")
 
 
-PYTEST = ("-m", "pytest", "-q", "-rfEs", "-p", "no:cacheprovider")
+# failures and errors named in the short summary (-rfE) with one line each (--tb=line): under pytest-xdist the
+# progress line is only letters, and the first campaign's suite printed about 11 F and no names
+PYTEST = ("-m", "pytest", "-q", "-rfE", "--tb=line", "-p", "no:cacheprovider")
+#: the dry run's suite: a few files on the CPU, one of them a test that skips there (its reason is in the summary)
+DRY_SUITE = ("tests/test_backend.py", "tests/losses/test_wavelets.py::test_cuda_matches_cpu")
+
+
+def summarise_junit(xml: Path, log: Path) -> str:
+    """Counts and the failed, errored and skipped tests by name (skips: how many per reason) from a junit XML, or,
+    when the run was killed before writing it, the summary lines of its log; one test per line."""
+    import xml.etree.ElementTree as ET
+
+    if not xml.is_file():
+        lines = [line for line in log.read_text(errors="replace").splitlines() if line.startswith(("FAILED ", "ERROR "))]
+        return f"no junit XML ({xml.name}): the run was cut before writing it; its log's summary lines:\n" + \
+            "".join(line + "\n" for line in lines)
+    counts = {"passed": 0, "failed": 0, "error": 0, "skipped": 0}
+    named, skips = [], {}
+    for case in ET.parse(xml).getroot().iter("testcase"):
+        test = f"{case.get('classname', '')}::{case.get('name', '')}"
+        outcome = next((c for c in case if c.tag in ("failure", "error", "skipped")), None)
+        if outcome is None:
+            counts["passed"] += 1
+            continue
+        message = (outcome.get("message") or outcome.text or "").strip().splitlines()
+        first = message[0][:300] if message else ""
+        if outcome.tag == "skipped":
+            counts["skipped"] += 1
+            skips[first] = skips.get(first, 0) + 1
+        else:
+            counts["failed" if outcome.tag == "failure" else "error"] += 1
+            named.append(f"{outcome.tag.upper()} {test}: {first}")
+    head = ", ".join(f"{v} {k}" for k, v in counts.items())
+    return (head + "\n" + "".join(n + "\n" for n in named)
+            + "".join(f"SKIPPED x{n}: {reason}\n" for reason, n in sorted(skips.items(), key=lambda kv: -kv[1])))
+
+
+def run_pytest(ctx: Context, phase: str, argv: list[str], budget: float, extra_env: dict | None = None) -> int:
+    """pytest with its junit XML under the logs, then the summary of what failed, errored and skipped, by name, into
+    ``<call>-<phase>-summary.txt`` (what comes back) and the console."""
+    xml = ctx.work / "logs" / f"{ctx.call}-{phase}.xml"
+    xml.unlink(missing_ok=True)  # a second call's run must not be read from the first one's file
+    code = ctx.run(phase, [ctx.python, *PYTEST, *argv, "--junitxml", str(xml)], budget, extra_env)
+    summary = summarise_junit(xml, ctx.log(phase))
+    (ctx.work / "logs" / f"{ctx.call}-{phase}-summary.txt").write_text(summary)
+    print(f"[{phase}] " + summary.splitlines()[0], flush=True)
+    return code
 
 
 def phase_tests(ctx: Context, budget: float) -> int:
     """The tests that need CUDA: gsplat's parity with our CPU path (its table to parity.json), the DWT, the plugin."""
     parity = {"KC_PARITY_REPORT": str(ctx.work / "logs" / "parity.json")}
-    return ctx.run("tests", [ctx.python, *PYTEST, *GPU_TESTS, "--junitxml", str(ctx.work / "logs" / "gpu-tests.xml")],
-                   budget, parity)
+    return run_pytest(ctx, "tests", list(GPU_TESTS), budget, parity)
 
 
 def phase_suite(ctx: Context, budget: float) -> int:
-    """The whole suite with the time left; cut at its budget, its log still holds how far it came."""
-    if ctx.dry:  # the command line checked, not the 1600 tests (CI runs them anyway)
-        suite = [ctx.python, *PYTEST, "--collect-only", "tests/render"]
-    else:  # pytest-xdist and pytest-timeout are in the image; -n 14 leaves the driver and pip two of the 16 cores
-        suite = [ctx.python, *PYTEST, "-n", "14", "--dist", "loadfile", "--timeout", "120",
-                 "--junitxml", str(ctx.work / "logs" / "suite.xml"), "tests"]
-    return ctx.run("suite", suite, budget - 5)
+    """The whole suite with the time left; cut at its budget (SIGINT first: pytest still names its failures)."""
+    if ctx.dry:  # the command line and the summary checked on a few files, not the 1700 tests (CI runs them anyway)
+        return run_pytest(ctx, "suite", list(DRY_SUITE), budget - 5)
+    # pytest-xdist and pytest-timeout are in the image; -n 14 leaves the driver and pip two of the 16 cores
+    return run_pytest(ctx, "suite", ["-n", "14", "--dist", "loadfile", "--timeout", "120", "tests"], budget - 5)
 
 
 def registered_methods(ctx: Context) -> list[str]:

@@ -3,6 +3,7 @@ the wheels against the device image's packages, what travels, and the dry run of
 
 import importlib.util
 import json
+import shutil
 import subprocess
 import sys
 import zipfile
@@ -17,6 +18,11 @@ SPEC = importlib.util.spec_from_file_location("gpu_campaign", PROJECT_ROOT / "be
 campaign = importlib.util.module_from_spec(SPEC)
 sys.modules["gpu_campaign"] = campaign  # dataclasses look their module up while the class is built
 SPEC.loader.exec_module(campaign)
+
+#: what lists the files a call sends needs a git checkout: a device call gets the working tree without .git
+needs_git_checkout = pytest.mark.skipif(
+    not (PROJECT_ROOT / ".git").exists() or shutil.which("git") is None,
+    reason="not a git checkout with git installed (the device image's copy of the tree has no .git)")
 
 
 def test_every_lease_fits_the_device_tools_limits():
@@ -41,7 +47,7 @@ def test_a_plan_over_the_limits_is_named():
     full = campaign.LEASES["full"]
     assert campaign.check_plan(full, device_s=900) == []
     assert campaign.check_plan(full, device_s=600) == [
-        "the plan needs 710 s with the machine's start and the turnarounds, over the 570 s it may use (600 s of device"
+        "the plan needs 720 s with the machine's start and the turnarounds, over the 570 s it may use (600 s of device"
         " time less 30 s for the close)"]
     assert campaign.check_plan((campaign.Call((("typo", 10),), "c"),)) == ["c: unknown phases ['typo']"]
 
@@ -80,6 +86,7 @@ def _git(repo: Path, *args: str) -> str:
     return subprocess.run(["git", *args], cwd=repo, check=True, capture_output=True, text=True).stdout
 
 
+@pytest.mark.skipif(shutil.which("git") is None, reason="git is not installed")
 def test_set_aside_keeps_the_files_and_restore_puts_them_back_in_the_index(tmp_path):
     repo = tmp_path / "repo"
     files = [".gitignore", "code.py", "docs/results/study-7k/runs/a/metrics.jsonl", "docs/results/study-7k/README.md",
@@ -108,6 +115,7 @@ def test_set_aside_keeps_the_files_and_restore_puts_them_back_in_the_index(tmp_p
     assert campaign.restore(repo) == []  # twice: nothing to do
 
 
+@needs_git_checkout
 def test_the_dry_run_runs_every_phase_and_a_second_lease_reuses_the_first_ones_runs(tmp_path):
     """The whole campaign on the CPU with tiny budgets: setup, tests, training of every registered method, bench,
     the study (two runs at once), packing under the device tool's limits, collecting with the study's report, and
@@ -130,7 +138,10 @@ def test_the_dry_run_runs_every_phase_and_a_second_lease_reuses_the_first_ones_r
     assert bench_log.count("| kc-splatfacto |") == 2 and "syncs | launches" in bench_log
     results = (work / "collected" / "study" / "results.md").read_text()
     assert "fern-12" in results and "flower-12" in results
-    assert "--collect-only" in (work / "first" / "logs" / "call1-suite.log").read_text()
+    # the suite's outcome by name, from its junit XML: counts, then each failure; skips by reason
+    summary = (work / "first" / "logs" / "call1-suite-summary.txt").read_text()
+    assert summary.splitlines()[0].endswith("0 failed, 0 error, 1 skipped")
+    assert "SKIPPED x1: needs a CUDA device" in summary
     back = [f for call in ("call1", "study1") for f in (work / "first" / "out" / call).iterdir()]
     assert 0 < len(back) and all(f.stat().st_size < campaign.OUT_FILE_BYTES for f in back)
 
@@ -220,3 +231,40 @@ def test_the_bench_counts_ordinary_training_steps_only(tmp_path, monkeypatch):
     monkeypatch.setattr(bench, "count_syncs_and_launches", lambda run_steps, steps: (run_steps(), {"steps": steps})[1])
     assert bench.trainer_syncs(trainer, SimpleNamespace(device="cuda"), steps=5) == {"steps": 5}
     assert counted == [98, 99, 101, 102, 103]  # 100 is a parameter-scan step
+
+
+def test_the_summary_names_each_failure_and_counts_skips_by_reason(tmp_path):
+    """What the suite phase brings back: every failed and errored test by name with its message's first line (the
+    first campaign's suite printed about 11 F and no names), skips counted per reason; from the log's summary lines
+    when the run was cut before its XML was written."""
+    xml = tmp_path / "suite.xml"
+    xml.write_text(
+        '<?xml version="1.0"?><testsuites><testsuite name="pytest">'
+        '<testcase classname="tests.a" name="test_ok"/>'
+        '<testcase classname="tests.a" name="test_bad"><failure message="assert 1 == 2&#10;more">tb</failure></testcase>'
+        '<testcase classname="tests.b" name="test_fixture"><error message="fixture \'x\' not found">tb</error></testcase>'
+        '<testcase classname="tests.c" name="test_gpu"><skipped message="needs a CUDA device"/></testcase>'
+        '<testcase classname="tests.c" name="test_gpu2"><skipped message="needs a CUDA device"/></testcase>'
+        '</testsuite></testsuites>')
+    summary = campaign.summarise_junit(xml, tmp_path / "unused.log").splitlines()
+    assert summary == ["1 passed, 1 failed, 1 error, 2 skipped", "FAILURE tests.a::test_bad: assert 1 == 2",
+                       "ERROR tests.b::test_fixture: fixture 'x' not found", "SKIPPED x2: needs a CUDA device"]
+    log = tmp_path / "suite.log"
+    log.write_text("..F.\nFAILED tests/a.py::test_bad - assert 1 == 2\n!!! KeyboardInterrupt !!!\n")
+    cut = campaign.summarise_junit(tmp_path / "missing.xml", log).splitlines()
+    assert cut[0].startswith("no junit XML") and cut[1:] == ["FAILED tests/a.py::test_bad - assert 1 == 2"]
+
+
+def test_the_profile_script_runs_its_plumbing_on_the_cpu():
+    """benchmarks/profile_gpu_step.py on the CPU with tiny settings, through the same configuration path as on CUDA
+    (it once raised AttributeError before its first step: ``args.device``, which bench_gpu's config reads, was never
+    set); it profiles ordinary steps of both methods and states the device's share (none on the CPU)."""
+    scene = shared_scene("castle-P30")
+    proc = subprocess.run([sys.executable, str(PROJECT_ROOT / "benchmarks" / "profile_gpu_step.py"), "--device", "cpu",
+                           "--scene", str(scene), "--downscale", "8", "--warmup-steps", "3", "--steps", "2",
+                           "--rows", "5"], cwd=PROJECT_ROOT, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    for method in ("splatfacto", "kc-splatfacto"):
+        assert f"==== {method}: 2 ordinary steps" in proc.stdout
+        assert f"==== {method}: by device time" not in proc.stdout  # no device on the CPU
+        assert "0 % of the wall time" in proc.stdout

@@ -277,6 +277,16 @@ def composite_with_background(
     return rgb + background.to(image) * (1.0 - alpha)
 
 
+def host_to_device(tensor: torch.Tensor, device: torch.device) -> torch.Tensor:
+    """``tensor`` on ``device`` without making the host wait for the device: from host memory to a CUDA device
+    through a pinned staging copy and an asynchronous transfer (a blocking copy waits for every kernel queued before
+    it: a host synchronisation per call); torch's pinned-memory allocator reuses the staging block only once the
+    transfer is done. A tensor already on ``device`` is returned as it is."""
+    if tensor.device.type == "cpu" and device.type == "cuda":
+        tensor = tensor.pin_memory()
+    return tensor.to(device, non_blocking=True)
+
+
 def rescale_cameras(camera: Cameras, d: int) -> Cameras:
     """Cameras rendering 1/d of the resolution (intrinsics scaled, sizes floored as nerfstudio does)."""
     if d == 1:
@@ -452,7 +462,9 @@ class SplatfactoModel(torch.nn.Module):
         """
         if len(camera) != 1:
             raise ValueError(f"get_outputs renders one camera at a time, got {len(camera)}")
-        camera = rescale_cameras(camera.to(self.device), self.get_downscale_factor())
+        # the camera stays where the dataset holds it (host memory): its size is read there without waiting for the
+        # device, and only the two matrices the rasterizer reads travel, asynchronously
+        camera = rescale_cameras(camera, self.get_downscale_factor())
         width, height = int(camera.widths[0]), int(camera.heights[0])
         colors: torch.Tensor | SplitSH
         if self.sh_degree > 0:
@@ -469,8 +481,8 @@ class SplatfactoModel(torch.nn.Module):
             scales=torch.exp(self.scales),
             opacities=torch.sigmoid(self.opacities).squeeze(-1),
             colors=colors,
-            viewmats=camera.viewmats.float(),
-            Ks=camera.Ks.float(),
+            viewmats=host_to_device(camera.viewmats.float(), self.device),
+            Ks=host_to_device(camera.Ks.float(), self.device),
             width=width,
             height=height,
             sh_degree=sh_degree,
@@ -496,7 +508,7 @@ class SplatfactoModel(torch.nn.Module):
         C = 3, or 4 (straight alpha in, *premultiplied* alpha out: colours are multiplied by alpha before the box
         downscale, so a transparent pixel's colour never leaks into its neighbours; see :func:`composite_with_background`).
         """
-        image = image.to(self.device)
+        image = host_to_device(image, self.device)
         image = image.float() / 255.0 if image.dtype == torch.uint8 else image.float()
         if image.shape[-1] == 4:
             image = torch.cat([image[..., :3] * image[..., 3:4], image[..., 3:4]], dim=-1)
@@ -515,7 +527,7 @@ class SplatfactoModel(torch.nn.Module):
         gt_img = composite_with_background(self.get_gt_img(batch["image"]), outputs["background"], premultiplied=True)
         mask = batch.get("mask")
         if mask is not None:
-            mask = downscale_mask(mask.to(self.device), self.get_downscale_factor())
+            mask = downscale_mask(host_to_device(mask, self.device), self.get_downscale_factor())
             if mask.shape[:2] != gt_img.shape[:2]:
                 raise ValueError(f"mask {tuple(mask.shape)} and ground truth {tuple(gt_img.shape)} differ in size")
         return gt_img, mask
@@ -574,7 +586,7 @@ class SplatfactoModel(torch.nn.Module):
             if self.step % SCALE_REG_EVERY == 0:
                 scale_exp = torch.exp(self.scales)
                 ratio = scale_exp.amax(dim=-1) / scale_exp.amin(dim=-1)
-                max_ratio = torch.tensor(self.config.max_gauss_ratio, device=ratio.device)
+                max_ratio = ratio.new_full((), self.config.max_gauss_ratio)  # filled on the device: no copy
                 loss_dict["scale_reg"] = SCALE_REG_WEIGHT * (torch.maximum(ratio, max_ratio) - max_ratio).mean()
             else:
                 loss_dict["scale_reg"] = torch.zeros((), device=self.device)

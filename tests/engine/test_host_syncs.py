@@ -1,207 +1,124 @@
-"""Host synchronisations in a training step (issue 36): every call that makes the host wait for a CUDA device
-(``.item()``, ``bool()``/``float()``/``int()`` of a tensor, ``.tolist()``, ``nonzero``, a boolean-mask index,
-``.cpu()``), counted on the CPU by wrapping those calls while kc-train's trainer takes ordinary steps: no logging,
-evaluation, density-control refinement or parameter scan among them (those may synchronise, every N steps).
-
-What only the CPU runs is left out of the count: the compiled CPU kernels' modules (the rasterizer's CPU backend,
-the ``_*_kernels`` modules) and the ``.numpy()`` calls that hand tensors to them (a CUDA tensor has no ``.numpy()``).
-Density control's statistics are counted on the torch path, the one a GPU runs (the CPU takes a compiled pass)."""
+"""Host synchronisations in an ordinary training step (no logging, evaluation, density-control refinement or
+parameter scan: those may synchronise, every N steps), counted on the CPU as torch's CUDA sync debug mode counts
+them (benchmarks/host_syncs.py: synchronising aten operators at the dispatcher, blocking copies between host and
+device memory, reads of device scalars; host-memory tensors such as the dataset's cameras tracked, so reading them
+is no synchronisation). The step runs on the torch path, the one a GPU takes (the compiled CPU kernels forced off);
+the rasterizer's own synchronisations are gsplat's on CUDA and are left out."""
 
 from __future__ import annotations
 
+import importlib.util
 import sys
-from collections import Counter
-from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
-import kc_splatfacto
 from kc_splatfacto.engine import trainer as trainer_module
 from kc_splatfacto.engine.trainer import Trainer
-from kc_splatfacto.model import strategy
+from tests.conftest import PROJECT_ROOT
 from tests.training_utils import tiny_demo_config
 
-PACKAGE = Path(kc_splatfacto.__file__).parent
-CPU_ONLY = ("render/rasterize_cpu.py", "render/project_cpu.py", "render/tiles.py")
-TENSOR_CALLS = ("item", "__bool__", "__float__", "__int__", "__index__", "tolist", "nonzero", "cpu")
-TORCH_CALLS = ("nonzero", "masked_select", "unique")
-#: reads of tensors that live in host memory whatever the training device, so no synchronisation on a GPU
-HOST_TENSORS = {
-    ("__int__", "model/splatfacto.py:get_outputs"): "the camera's width and height: Cameras stay in host memory",
+SPEC = importlib.util.spec_from_file_location("host_syncs", PROJECT_ROOT / "benchmarks" / "host_syncs.py")
+host_syncs = importlib.util.module_from_spec(SPEC)
+sys.modules["host_syncs"] = host_syncs  # dataclasses look their module up while the class is built
+SPEC.loader.exec_module(host_syncs)
+
+#: the synchronisations an ordinary step keeps, each with why (by kind and 'module function', lines left out)
+KEPT = {
+    # whether the step is good (render, loss and gradients reduced to one flag on the device): a bad step must be
+    # skipped before the optimizer applies it, so the verdict is needed on the host before the update
+    ("_local_scalar_dense", "engine/trainer.py _step_problem"): 1,
+    # kornia's SSIM (D-SSIM's loss on the GPU) builds its Gaussian window on the host and copies it to the device
+    # at every call; the fused D-SSIM path on CUDA replaces it
+    ("host-to-device copy", "metrics.py ssim via kornia"): 1,
 }
 
 
-def _caller() -> str | None:
-    """'module.py:function' of the first caller outside torch, when it is package code that runs on a GPU."""
-    frame = sys._getframe(2)
-    while frame is not None and "/torch/" in frame.f_code.co_filename:
-        frame = frame.f_back
-    if frame is None:
-        return None
-    path = Path(frame.f_code.co_filename)
-    if PACKAGE not in path.parents:
-        return None
-    relative = path.relative_to(PACKAGE).as_posix()
-    if relative in CPU_ONLY or path.name.startswith("_") and path.name.endswith("_kernels.py"):
-        return None
-    return f"{relative}:{frame.f_code.co_name}"
+def _by_function(counts, steps: int) -> dict:
+    """{(kind, 'module function[ via lib]'): per step} from the detector's 'module:line function[ via lib]'."""
+    out: dict = {}
+    for (kind, where), n in counts.items():
+        module, _, rest = where.partition(":")
+        key = (kind, f"{module} {rest.split(' ', 1)[1]}" if ":" in where else where)
+        out[key] = out.get(key, 0) + n / steps
+    return out
 
 
-@pytest.fixture
-def count_syncs(monkeypatch):
-    counts: Counter = Counter()
-
-    def wrap(owner, name):
-        original = getattr(owner, name)
-
-        def counted(*args, **kwargs):
-            where = _caller()
-            if where is not None:
-                counts[(name, where)] += 1
-            return original(*args, **kwargs)
-
-        monkeypatch.setattr(owner, name, counted)
-
-    for name in TENSOR_CALLS:
-        wrap(torch.Tensor, name)
-    for name in TORCH_CALLS:
-        wrap(torch, name)
-    where = torch.where
-
-    def counted_where(*args, **kwargs):  # torch.where(mask): nonzero() by another name
-        if len(args) + len(kwargs) == 1 and _caller() is not None:
-            counts[("torch.where(mask)", _caller())] += 1
-        return where(*args, **kwargs)
-
-    monkeypatch.setattr(torch, "where", counted_where)
-    getitem = torch.Tensor.__getitem__
-
-    def masked_getitem(self, index):  # x[mask]: a nonzero() inside
-        parts = index if isinstance(index, tuple) else (index,)
-        if any(isinstance(p, torch.Tensor) and p.dtype == torch.bool for p in parts):
-            where = _caller()
-            if where is not None:
-                counts[("bool-mask index", where)] += 1
-        return getitem(self, index)
-
-    monkeypatch.setattr(torch.Tensor, "__getitem__", masked_getitem)
-    return counts
+def _warm_trainer(method: str, tmp_path) -> Trainer:
+    config = tiny_demo_config(method, tmp_path, iterations=50, steps_scale=1.0)
+    config.logging.steps_per_log = 1000
+    config.logging.steps_per_gradient_shares = 0
+    trainer = Trainer(config)
+    trainer.setup()
+    for step in range(30):  # caches, the GT's wavelet statistics, the first step's one-time work
+        trainer.train_iteration(step)
+    return trainer
 
 
 @pytest.mark.parametrize("method", ["splatfacto", "kc-splatfacto", "kc-splatfacto-corr"])
-def test_an_ordinary_training_step_synchronises_once(method, tmp_path, monkeypatch, count_syncs):
-    config = tiny_demo_config(method, tmp_path, iterations=40, steps_scale=1.0)
-    config.logging.steps_per_log = 1000
-    config.logging.steps_per_gradient_shares = 0
-    config.logging.progress_bar = True  # lines every 100 steps: none among the counted ones
-    trainer = Trainer(config)
-    trainer.setup()
-    for step in range(30):  # warm: caches, the GT's wavelet statistics, the first step's one-time work
-        trainer.train_iteration(step)
-    monkeypatch.setattr(strategy, "_stats_kernel_applies", lambda *args: False)  # the GPU's torch path
-    count_syncs.clear()
-    steps = range(30, 36)
+def test_an_ordinary_step_keeps_only_the_step_verdict_and_kornias_window(method, tmp_path):
+    trainer = _warm_trainer(method, tmp_path)
+    steps = list(range(30, 38))
     assert all(s % trainer_module.PARAMETER_SCAN_EVERY for s in steps)
-    for step in steps:
-        assert trainer.train_iteration(step)  # a good step
-    per_step = {k: v / len(steps) for k, v in count_syncs.items() if k not in HOST_TENSORS}
-    # the one left: whether the step is good (render, loss and gradients, reduced to one flag on the device)
-    assert per_step == {("__bool__", "engine/trainer.py:_step_problem"): 1.0}
+    found = host_syncs.count_ordinary_steps(trainer, steps, warm=2)
+    counted = len(steps) - 2
+    assert _by_function(found.ours(), counted) == KEPT
+    # the step's copies from host memory are asynchronous (pinned on CUDA): the image and the camera's two matrices
+    assert _by_function(found.async_copies, counted) == {("host-to-device copy", "model/splatfacto.py host_to_device"): 3}
+    # the count is not blind inside the step: the torch rasterizer (gsplat on CUDA) synchronises, and is seen
+    assert any(where == host_syncs.RASTERIZER for _, where in found.syncs)
 
 
-def test_the_count_sees_a_synchronisation(tmp_path, count_syncs):
-    """The wrapping itself: a float() of a loss in package code is counted (the check above cannot pass by seeing
-    nothing)."""
-    from kc_splatfacto.engine.trainer import StepLosses
-
-    losses = StepLosses({"main_loss": torch.tensor(0.5)})
-    assert losses["loss"] == 0.5
-    assert count_syncs[("tolist", "engine/trainer.py:_read")] == 1
+def _package_function(code: str):
+    """A function compiled as if it were package code (its frames carry a path under kc_splatfacto/)."""
+    namespace = {"torch": torch, "np": np}
+    exec(compile(code, str(host_syncs.PACKAGE / "model" / "probe.py"), "exec"), namespace)
+    return namespace["probe"]
 
 
-#: aten operators that make the host wait on a CUDA device (their results' size or value is needed on the host)
-SYNCHRONISING_ATEN = ("_local_scalar_dense", "nonzero", "nonzero_static", "masked_select", "unique", "_unique",
-                      "_unique2", "unique_dim", "unique_consecutive", "equal", "is_nonzero", "bincount", "histc",
-                      "multinomial")
+def test_the_detector_sees_what_synchronises_on_cuda_and_not_what_does_not():
+    """Each kind the detector counts, written in package code, on a device tensor and on a host tensor."""
+    probe = _package_function(
+        "def probe(x, host, mask):\n"
+        "    a = float(x.sum())\n"                       # a device scalar read: _local_scalar_dense
+        "    b = x[mask]\n"                              # a boolean-mask index: nonzero inside
+        "    c = x.nonzero()\n"
+        "    d = x.tolist()\n"                           # device to host
+        "    e = x.cpu()\n"
+        "    f = host.to(x.device)\n"                    # host to device, blocking
+        "    g = host.to(x.device, non_blocking=True)\n"  # asynchronous: not flagged by CUDA
+        "    h = torch.tensor([1.0, 2.0], device=x.device)\n"  # Python data to the device
+        "    i = int(host[0])\n"                         # a host read: no synchronisation
+        "    j = torch.where(mask, x, 0.0).sum()\n"      # masked arithmetic: none
+        "    k = torch.as_tensor(np.arange(3.0)).tolist()\n"  # host data read on the host: none
+        "    return a, b, c, d, e, f, g, h, i, j, k\n")
+    host = torch.arange(4.0)
+    detector = host_syncs.HostSyncDetector(host=[host])
+    with detector.counting() as found:
+        probe(torch.arange(4.0) + 1, host, torch.tensor([True, False, True, False]))
+    kinds = sorted(kind for kind, _ in found.syncs.elements())
+    assert kinds == sorted(["_local_scalar_dense", "index with a boolean mask", "nonzero", "device-to-host copy (tolist)",
+                            "device-to-host copy", "host-to-device copy", "host-to-device copy"])
+    assert [kind for kind, _ in found.async_copies] == ["host-to-device copy"]
+    assert all(where.startswith("model/probe.py:") for _, where in found.syncs)
+    # what the caller's own code does is not the package's: not counted
+    detector.found.clear()
+    with detector.counting() as found:
+        float((torch.arange(4.0) + 1).sum())
+    assert not found.syncs
 
 
-class _AtenSyncCount:
-    """A second, independent count below the Python API: every synchronising aten operator and every boolean-mask
-    ``index`` that reaches torch's dispatcher, by the package function that called it (``_caller``'s rules)."""
+def test_the_rasterizers_internals_are_told_apart():
+    """A synchronisation with the torch rasterizer's functions on the stack is the rasterizer's (gsplat's on CUDA);
+    elsewhere it is the innermost package frame's."""
+    def here():
+        return host_syncs.source_of(sys._getframe())
 
-    def __init__(self) -> None:
-        from torch.utils._python_dispatch import TorchDispatchMode
-
-        counts: Counter = Counter()
-
-        class Mode(TorchDispatchMode):
-            def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-                name = func.__name__.split(".")[0]
-                masked = name == "index" and len(args) > 1 and any(
-                    isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in args[1] if i is not None)
-                if name in SYNCHRONISING_ATEN or masked:
-                    where = _package_frame()
-                    if where is not None:
-                        counts[(name, where)] += 1
-                return func(*args, **(kwargs or {}))
-
-        self.counts, self.mode = counts, Mode()
-
-
-def _package_frame() -> str | None:
-    """'module.py:function' of the innermost package frame that runs on a GPU (None: none, or CPU-only code)."""
-    frame = sys._getframe(1)
-    while frame is not None:
-        path = Path(frame.f_code.co_filename)
-        if PACKAGE in path.parents:
-            relative = path.relative_to(PACKAGE).as_posix()
-            if relative in CPU_ONLY or path.name.startswith("_") and path.name.endswith("_kernels.py"):
-                return None
-            return f"{relative}:{frame.f_code.co_name}"
-        frame = frame.f_back
-    return None
-
-
-@pytest.mark.parametrize("method", ["splatfacto", "kc-splatfacto"])
-def test_the_dispatcher_sees_the_same_single_synchronisation(method, tmp_path, monkeypatch):
-    """The same ordinary steps counted at torch's dispatcher (TorchDispatchMode) instead of by wrapping Python calls:
-    a synchronising call the wrapping misses (an operator reached another way) would show here. The first GPU campaign
-    reported 54 and 25 synchronisations per step; its window held a run's last step (evaluation and checkpoint)."""
-    config = tiny_demo_config(method, tmp_path, iterations=40, steps_scale=1.0)
-    config.logging.steps_per_log = 1000
-    config.logging.steps_per_gradient_shares = 0
-    trainer = Trainer(config)
-    trainer.setup()
-    for step in range(30):
-        trainer.train_iteration(step)
-    monkeypatch.setattr(strategy, "_stats_kernel_applies", lambda *args: False)
-    count = _AtenSyncCount()
-    with count.mode:
-        for step in range(30, 36):
-            assert trainer.train_iteration(step)
-    per_step = {k: v / 6 for k, v in count.counts.items()}
-    host_reads = {k: v for k, v in per_step.items() if k == ("_local_scalar_dense", "model/splatfacto.py:get_outputs")}
-    assert host_reads == {("_local_scalar_dense", "model/splatfacto.py:get_outputs"): 2.0}  # width, height (host)
-    assert {k: v for k, v in per_step.items() if k not in host_reads} == {
-        ("_local_scalar_dense", "engine/trainer.py:_step_problem"): 1.0}
-
-
-def test_the_dispatcher_count_sees_an_item_and_a_mask_index(monkeypatch):
-    """The dispatcher count itself (the check above cannot pass by seeing nothing): ``.item()`` in package code is
-    counted, and so is a boolean-mask index. Device-to-host copies (``.tolist()``, ``.cpu()``) are no operators on
-    the CPU: this count cannot see them, the wrapping count above does."""
-    from kc_splatfacto.metrics import _check_mask
-
-    count = _AtenSyncCount()
-    with count.mode:
-        _check_mask(torch.ones(1, 1, 4, 4), torch.zeros(1, 3, 4, 4))
-        picked = torch.arange(4.0)[torch.tensor([True, False, True, False])]
-    assert count.counts[("_local_scalar_dense", "metrics.py:_check_mask")] == 1
-    assert picked.tolist() == [0.0, 2.0]
-    assert not any(name == "index" for name, _ in count.counts)  # test code is not package code: not counted
-    monkeypatch.setattr(sys.modules[__name__], "_package_frame", lambda: "anywhere")
-    with count.mode:
-        torch.arange(4.0)[torch.tensor([True, False, True, False])]
-        torch.arange(4.0)[torch.tensor([0, 2])]  # an integer index needs no synchronisation
-    assert count.counts[("index", "anywhere")] == 1
+    assert here() is None  # a test is not package code
+    package_code = _package_function("def probe(f):\n    return f()\n")
+    assert package_code(here) == "model/probe.py:2 probe"
+    namespace: dict = {}
+    exec(compile("def _rasterization_torch(f):\n    return f()\n", str(host_syncs.PACKAGE / "render" / "rasterization.py"),
+                 "exec"), namespace)
+    assert namespace["_rasterization_torch"](lambda: package_code(here)) == host_syncs.RASTERIZER
