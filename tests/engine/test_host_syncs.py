@@ -29,9 +29,6 @@ KEPT = {
     # whether the step is good (render, loss and gradients reduced to one flag on the device): a bad step must be
     # skipped before the optimizer applies it, so the verdict is needed on the host before the update
     ("_local_scalar_dense", "engine/trainer.py _step_problem"): 1,
-    # kornia's SSIM (D-SSIM's loss on the GPU) builds its Gaussian window on the host and copies it to the device
-    # at every call; the fused D-SSIM path on CUDA replaces it
-    ("host-to-device copy", "metrics.py ssim via kornia"): 1,
 }
 
 
@@ -57,7 +54,7 @@ def _warm_trainer(method: str, tmp_path) -> Trainer:
 
 
 @pytest.mark.parametrize("method", ["splatfacto", "kc-splatfacto", "kc-splatfacto-corr"])
-def test_an_ordinary_step_keeps_only_the_step_verdict_and_kornias_window(method, tmp_path):
+def test_an_ordinary_step_keeps_only_the_step_verdict(method, tmp_path):
     trainer = _warm_trainer(method, tmp_path)
     steps = list(range(30, 38))
     assert all(s % trainer_module.PARAMETER_SCAN_EVERY for s in steps)
