@@ -50,6 +50,7 @@ from kc_splatfacto.atomic import atomic_write_text
 from kc_splatfacto.cli.main import INTERRUPTED_EXIT, check_folder_can_hold, did_you_mean, path_flag, run_cli
 from kc_splatfacto.cli.train import override_config
 from kc_splatfacto.data.detect import AutoDataParserConfig
+from kc_splatfacto.engine.base_config import MachineConfig
 from kc_splatfacto.engine.checkpoints import (
     CHECKPOINT_DIR,
     checkpoint_step,
@@ -428,6 +429,16 @@ def check_bench_args(args: argparse.Namespace) -> None:
     among the methods, with a note when it is not)."""
     if args.max_num_iterations < 1:
         raise UserError(f"--max-num-iterations must be at least 1, got {args.max_num_iterations}")
+    if args.steps_scale not in ("auto", "none"):
+        try:
+            float(args.steps_scale)
+        except ValueError:
+            raise UserError(f"--steps-scale must be 'none', 'auto' or a number, got {args.steps_scale!r}") from None
+    if not (args.ray_address or os.environ.get("RAY_ADDRESS")):  # the runs train here: this machine's devices
+        try:
+            MachineConfig(device=args.device).resolve_device()
+        except UserError as exc:
+            raise UserError(str(exc).replace("--machine.device", "--device")) from exc
     for flag, folder, default in (("--output-dir", args.output_dir, DEFAULT_OUTPUT_DIR),
                                   ("--runs-dir", args.runs_dir, None)):
         if folder is not None:
