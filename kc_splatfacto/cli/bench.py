@@ -57,6 +57,7 @@ from kc_splatfacto.engine.checkpoints import (
     list_checkpoints,
     remove_orphan_temp_files,
 )
+from kc_splatfacto.engine.memory import BUDGET_FRACTION, cpu_memory_it_may_use
 from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.optimizers import SPLATFACTO_SCHEDULE_STEPS  # ``--steps-scale auto``: budget / this
 from kc_splatfacto.engine.validation import ConfigValueError, validate_config
@@ -315,6 +316,8 @@ def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
         runner: SerialRunner | RayRunner = SerialRunner()  # finished runs are only read
     else:
         to_run, runner = specs, choose_runner(args)
+        if isinstance(runner, RayRunner) and not (args.ray_address or os.environ.get("RAY_ADDRESS")):
+            share_memory_budget(specs, args.workers)
     out_dir.mkdir(parents=True, exist_ok=True)
     if not args.report_only:
         (out_dir / "command.txt").write_text("kc-bench " + " ".join(shlex.quote(a) for a in argv) + "\n")
@@ -337,6 +340,20 @@ def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
               file=sys.stderr, flush=True)
         raise StudyRunsFailed(len(failures))
     return paths
+
+
+def share_memory_budget(specs: Sequence[RunSpec], workers: int) -> None:
+    """Runs that train at once on this machine's CPU share its memory: each run left at the default budget (0: a
+    share of what the process may use, engine/memory.py) gets ``1/workers`` of this machine's, since each alone would
+    count the memory the others are about to fill as its own."""
+    total = cpu_memory_it_may_use()
+    if total is None or workers <= 1:
+        return
+    share = round(total * BUDGET_FRACTION / workers / 1e9, 2)
+    for spec in specs:
+        machine = spec.config.machine
+        if machine.memory_budget_gb == 0 and str(machine.device) == "cpu":
+            machine.memory_budget_gb = share
 
 
 def check_budget_reaches_checkpoints(specs: Sequence[RunSpec]) -> None:
