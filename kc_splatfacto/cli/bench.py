@@ -50,12 +50,14 @@ from kc_splatfacto.atomic import atomic_write_text
 from kc_splatfacto.cli.main import INTERRUPTED_EXIT, check_folder_can_hold, did_you_mean, path_flag, run_cli
 from kc_splatfacto.cli.train import override_config
 from kc_splatfacto.data.detect import AutoDataParserConfig
+from kc_splatfacto.engine.base_config import MachineConfig
 from kc_splatfacto.engine.checkpoints import (
     CHECKPOINT_DIR,
     checkpoint_step,
     list_checkpoints,
     remove_orphan_temp_files,
 )
+from kc_splatfacto.engine.memory import BUDGET_FRACTION, cpu_memory_it_may_use
 from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.optimizers import SPLATFACTO_SCHEDULE_STEPS  # ``--steps-scale auto``: budget / this
 from kc_splatfacto.engine.validation import ConfigValueError, validate_config
@@ -314,6 +316,8 @@ def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
         runner: SerialRunner | RayRunner = SerialRunner()  # finished runs are only read
     else:
         to_run, runner = specs, choose_runner(args)
+        if isinstance(runner, RayRunner) and not (args.ray_address or os.environ.get("RAY_ADDRESS")):
+            share_memory_budget(specs, args.workers)
     out_dir.mkdir(parents=True, exist_ok=True)
     if not args.report_only:
         (out_dir / "command.txt").write_text("kc-bench " + " ".join(shlex.quote(a) for a in argv) + "\n")
@@ -336,6 +340,20 @@ def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
               file=sys.stderr, flush=True)
         raise StudyRunsFailed(len(failures))
     return paths
+
+
+def share_memory_budget(specs: Sequence[RunSpec], workers: int) -> None:
+    """Runs that train at once on this machine's CPU share its memory: each run left at the default budget (0: a
+    share of what the process may use, engine/memory.py) gets ``1/workers`` of this machine's, since each alone would
+    count the memory the others are about to fill as its own."""
+    total = cpu_memory_it_may_use()
+    if total is None or workers <= 1:
+        return
+    share = round(total * BUDGET_FRACTION / workers / 1e9, 2)
+    for spec in specs:
+        machine = spec.config.machine
+        if machine.memory_budget_gb == 0 and str(machine.device) == "cpu":
+            machine.memory_budget_gb = share
 
 
 def check_budget_reaches_checkpoints(specs: Sequence[RunSpec]) -> None:
@@ -428,6 +446,16 @@ def check_bench_args(args: argparse.Namespace) -> None:
     among the methods, with a note when it is not)."""
     if args.max_num_iterations < 1:
         raise UserError(f"--max-num-iterations must be at least 1, got {args.max_num_iterations}")
+    if args.steps_scale not in ("auto", "none"):
+        try:
+            float(args.steps_scale)
+        except ValueError:
+            raise UserError(f"--steps-scale must be 'none', 'auto' or a number, got {args.steps_scale!r}") from None
+    if not (args.ray_address or os.environ.get("RAY_ADDRESS")):  # the runs train here: this machine's devices
+        try:
+            MachineConfig(device=args.device).resolve_device()
+        except UserError as exc:
+            raise UserError(str(exc).replace("--machine.device", "--device")) from exc
     for flag, folder, default in (("--output-dir", args.output_dir, DEFAULT_OUTPUT_DIR),
                                   ("--runs-dir", args.runs_dir, None)):
         if folder is not None:

@@ -21,7 +21,6 @@ the rise of its intercept with the pixel count.
 from __future__ import annotations
 
 import os
-import resource
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -60,6 +59,10 @@ def current_rss_bytes() -> int:
 
 
 def _peak_rss_bytes() -> int:
+    try:
+        import resource  # POSIX only
+    except ImportError:
+        return 0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return int(peak if sys.platform == "darwin" else peak * 1024)  # bytes on macOS, kilobytes on Linux
 

@@ -148,3 +148,20 @@ def test_resume_refuses_to_reuse_a_finished_run_of_other_settings(tmp_path, caps
     assert bench.entrypoint([*args, *change, "--output-dir", str(out), "--resume"]) == 2
     err = capsys.readouterr().err
     assert "seed0" in err and "--runs-dir" in err
+
+
+def test_runs_at_once_on_this_cpu_share_its_memory_budget(tmp_path, monkeypatch):
+    """Issue 58 item 4: with --workers N on a local cluster each CPU run left at the default budget gets 1/N of the
+    machine's (alone, each would count the memory the others are about to fill); a budget given is kept."""
+    from kc_splatfacto.engine import memory
+
+    monkeypatch.setattr(memory, "cpu_memory_it_may_use", lambda: 8_000_000_000)
+    monkeypatch.setattr(bench, "cpu_memory_it_may_use", memory.cpu_memory_it_may_use)
+    args = bench.build_parser().parse_args(["--data", "demo", "--methods", "splatfacto", "--seeds", "0", "1",
+                                            "--max-num-iterations", "2", "--output-dir", str(tmp_path)])
+    bench.check_bench_args(args)
+    specs = bench.plan_runs(args, bench.discover_methods(), tmp_path / "runs")
+    specs[1].config.machine.memory_budget_gb = 3.0
+    bench.share_memory_budget(specs, workers=2)
+    assert specs[0].config.machine.memory_budget_gb == round(8 * memory.BUDGET_FRACTION / 2, 2)
+    assert specs[1].config.machine.memory_budget_gb == 3.0
