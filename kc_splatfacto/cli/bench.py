@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import functools
 import json
 import os
 import shlex
@@ -306,9 +307,7 @@ def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
     if args.resume and not args.report_only:
         check_budget_reaches_checkpoints(specs)
         for spec in specs:  # what a killed run left mid-write, a finished run's too: removed, one line each
-            remove_orphan_temp_files(spec.run_dir / CHECKPOINT_DIR,
-                                     announce=lambda line, spec=spec: print(f"[kc-bench] {spec.name}: {line}",
-                                                                            flush=True))
+            remove_orphan_temp_files(spec.run_dir / CHECKPOINT_DIR, announce=functools.partial(_announce, spec.name))
     if args.report_only:
         to_run = [spec for spec in specs if is_finished(spec.run_dir, spec.max_steps)]
         if not to_run:
@@ -544,6 +543,10 @@ def build_parser() -> argparse.ArgumentParser:
 def entrypoint(argv: list[str] | None = None) -> int:
     """``kc-bench``: user errors are one line and exit code 2 (``--debug`` shows the traceback)."""
     return run_cli("kc-bench", main, argv)
+
+
+def _announce(run_name: str, line: str) -> None:
+    print(f"[kc-bench] {run_name}: {line}", flush=True)
 
 
 def main(argv: list[str]) -> int:

@@ -200,7 +200,7 @@ def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
                 f"reading the binary COLMAP model in {model_dir} needs pycolmap: pip install pycolmap (or convert "
                 "it to text with `colmap model_converter --output_type TXT`, which is read without pycolmap)"
             ) from exc
-        pycolmap = None  # type: ignore[assignment]
+        pycolmap = None
     if not any((model_dir / f"points3D{ext}").is_file() for ext in (".bin", ".txt")):
         raise DataParserError(
             f"{model_dir} has cameras and images but no points3D.bin or points3D.txt: copy the model's points3D "
