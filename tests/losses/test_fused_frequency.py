@@ -173,3 +173,25 @@ class _no_warning:
 
     def __exit__(self, *exc):
         return False
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (the GPU campaign runs it)")
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_the_fused_terms_on_cuda_equal_the_cpu_path(dtype):
+    # what a GPU trains with (the fused Function, TF32 kept off) against the CPU's compiled kernels
+    g = torch.Generator().manual_seed(7)
+    gt = torch.rand(1, 3, 96, 128, generator=g, dtype=dtype) ** 2
+    pred = torch.rand(1, 3, 96, 128, generator=g, dtype=dtype)
+    loss = FrequencyLoss(wavelet_weight=1.0, kc_weight=1.0, cbc_weight=1e3)
+    results = []
+    for device in ("cpu", "cuda"):
+        x = pred.to(device).requires_grad_(True)
+        terms = loss(x, loss.prepare_target(gt.to(device)))
+        grad = torch.autograd.grad(torch.stack(list(terms.values())).sum(), x)[0]
+        results.append(({k: v.detach().cpu() for k, v in terms.items()}, grad.cpu()))
+    (cpu, cpu_grad), (cuda, cuda_grad) = results
+    rtol = 1e-10 if dtype == torch.float64 else 1e-4
+    for key in cpu:
+        torch.testing.assert_close(cuda[key], cpu[key], rtol=rtol, atol=0)
+    scale = cpu_grad.abs().max()
+    torch.testing.assert_close(cuda_grad / scale, cpu_grad / scale, rtol=0, atol=rtol)

@@ -299,3 +299,18 @@ def test_the_torch_path_of_the_main_loss_takes_a_third_of_kornias_operations():
             loss.backward()
     total = sum(forward.counts.values()) + sum(backward.counts.values())
     assert total <= 64, (dict(forward.counts), dict(backward.counts))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (the GPU campaign runs it)")
+def test_stacked_dssim_on_cuda_equals_kornia():
+    torch.manual_seed(5)
+    gt = torch.rand(1, 3, 96, 128, device="cuda")
+    pred = (gt + 0.2 * torch.randn_like(gt)).clamp(0, 1).requires_grad_(True)
+    value = dssim(pred, gt)
+    assert "Stacked" in type(value.grad_fn).__name__
+    (grad,) = torch.autograd.grad(value, pred)
+    reference = _kornia_dssim(pred, gt)
+    (g_reference,) = torch.autograd.grad(reference, pred)
+    np.testing.assert_allclose(float(value), float(reference), rtol=0, atol=1e-6)
+    scale = float(g_reference.abs().max())
+    np.testing.assert_allclose(grad.cpu().numpy(), g_reference.cpu().numpy(), rtol=0, atol=1e-4 * scale)
