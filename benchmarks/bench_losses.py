@@ -6,7 +6,7 @@ Every timing is a median over repeats in this same run. ptwt and pytorch_wavelet
 pass, two strided convs per level) measured against the shipped one (one strided conv with four 2D filters).
 With the shared castle-P30 scene present (../shared/data or KC_SHARED_DATA), it also prints the padding table of
 docs/losses.md: the finest-band kurtosis of a blurred natural photo under each boundary mode.
-Targets (issue 2): dwt2 at least as fast as ptwt at 512 and 1024 px; FrequencyLoss with cached GT within 1.5x of one
+Targets: dwt2 at least as fast as ptwt at 512 and 1024 px; FrequencyLoss with cached GT within 1.5x of one
 dwt2 forward+backward.
 """
 

@@ -1,4 +1,4 @@
-"""Peak memory (RSS) of a CPU training against the number of Gaussians, at two image sizes (issue 58 item 4).
+"""Peak memory (RSS) of a CPU training against the number of Gaussians, at two image sizes.
 
 Each point is its own process (peak RSS is per process): kc-splatfacto on the generated demo scene at the given image
 size, started from N random Gaussians with growth off (warm-up past the budget, cap N), trained a few steps; the

@@ -10,7 +10,7 @@ backward). The reference runs only where its estimated time stays within a minut
 
 Also printed: the fast path's stage breakdown, a work-precision line per backend (largest error against a float64
 run of the reference, next to the time), the cold start of a second process (numba kernels loaded from the cache)
-and the targets of issue 3.
+and the targets it was built to meet.
 
     .venv/bin/python benchmarks/bench_rasterizer.py            # full table (~3-5 min on 2 cores)
     .venv/bin/python benchmarks/bench_rasterizer.py --quick    # small scenes only

@@ -11,7 +11,7 @@ Target: a kc-splatfacto step at most 1.10x a splatfacto step.
 
 ``--warmup-from`` starts every method from an existing splatfacto run's last checkpoint instead of a fresh warm-up:
 the way to time two code versions at the SAME state (a run of another version trains a different state, e.g. 69.5k
-against 79k Gaussians between the pre-issue and the current code, because their float rounding differs).
+against 79k Gaussians between two code versions, because their float rounding differs).
 
 ``--methods`` names the registered methods to time (the first is the baseline of the ratios; default splatfacto and
 kc-splatfacto); the target line is printed for every method after the first.

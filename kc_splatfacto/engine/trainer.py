@@ -1,20 +1,9 @@
 """The training loop: ``Trainer(config).train() -> run folder``.
 
-Step convention: ``step`` in checkpoints and ``metrics.jsonl`` is the number of optimization steps completed
-(``step-000000300.ckpt`` holds the state after 300 steps; an eval record with step 0 is the initial render). Inside an
-iteration ``model.step`` is the 0-based index of the step being taken, which every schedule reads; the pipeline sets
-it (``Pipeline.train_view``). The trainer optimises, times and logs; it reaches the model only through public methods
-(its parameter groups, their gradient peaks, the removal of non-finite Gaussians, its schedules' state).
-
-Stiff cases: a non-finite render, loss or gradient skips the step (no update, no density-control statistics; the
-learning-rate schedule still advances so the run keeps its length); Gaussians whose parameters are non-finite are
-removed (with their optimizer state) and that step is skipped: found by the rasterizer while it reads them, and by a
-full scan every ``PARAMETER_SCAN_EVERY`` steps for values that render finitely. Each is a ``bad_step`` record. After ``max_consecutive_bad_steps`` in a row the state (still the last good
-one, since bad updates were never applied) is saved and :class:`TrainingDivergedError` raised. Ctrl-C (SIGINT) or SIGTERM ends
-the current step, saves a checkpoint and returns cleanly.
-
-Resume (``load_dir``) restores the Gaussians, every optimizer and schedule, the density-control statistics, the
-image order and the torch / numpy / python RNG states, so a resumed run continues exactly where it stopped.
+The trainer optimises, times, logs and checkpoints; it reaches the model only through public methods. A bad step
+(non-finite render, loss or gradient) is skipped, non-finite Gaussians are removed, and Ctrl-C or SIGTERM saves a
+checkpoint from which a resume continues bit for bit. Step convention, records, resume rules and stiff cases:
+docs/training.md and docs/stability.md.
 """
 
 from __future__ import annotations
