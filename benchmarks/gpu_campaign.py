@@ -57,11 +57,13 @@ OUT_FILES = 8
 OUT_FILE_BYTES = 16 * MIB
 TRAVEL_BYTES = 64 * MIB  # tracked + untracked-not-ignored files + carried paths, per call
 COMMAND_CHARS = 2000
-CARRY = (".whl", ".gpu")
+CARRY_LIMIT = 8  # paths a call may carry
 WHEEL_DIR = ROOT / ".whl"
+NS_WHEEL_DIR = ROOT / ".whl-ns"
 GPU_DIR = ROOT / ".gpu"
 IMAGE_FILE = ROOT / "docs" / "results" / "gpu" / "device_image.json"
 LOCK_FILE = ROOT / "docs" / "results" / "gpu" / "wheels.lock.json"
+NS_LOCK_FILE = ROOT / "docs" / "results" / "gpu" / "wheels-nerfstudio.lock.json"
 SET_ASIDE_FILE = GPU_DIR / "set_aside.txt"
 CAMPAIGN_DIR = Path("docs") / "results" / "gpu" / "campaign"  # what came back: logs-<time>/, study/
 # tracked files that never need to travel: the committed studies' run folders and figures (~90 MB)
@@ -85,6 +87,21 @@ PROVIDED_AS = {"opencv-contrib-python-headless": "opencv-python-headless"}
 # pinned to the versions of the CPU environment (kornia 0.9.0, PyWavelets 1.9.0, ...) so both run the same code
 WHEELS = ("gsplat==1.5.3", "kornia==0.9.0", "kornia-rs==0.2.0", "tyro==1.0.17", "docstring-parser==0.18.0",
           "typeguard==4.6.1", "PyWavelets==1.9.0", "trimesh==5.2.0")
+# the nerfstudio plugin's CUDA test (tests/nerfstudio_plugin/test_cuda.py: ns-train and nerfstudio's Splatfacto with
+# the three terms): nerfstudio 1.1.5's import closure, measured as the module-level imports followed from ns-train,
+# nerfstudio.models.splatfacto and the plugin's own imports (149 nerfstudio modules), less what the image has
+# (torchvision, torchmetrics, tensorboard, jaxtyping, rich, ...): 16.2 MiB, carried by the full lease only
+NS_WHEELS = ("nerfstudio==1.1.5", "appdirs==1.4.4", "fpsample==0.3.3", "nerfacc==0.5.2", "pathos==0.3.5", "dill==0.4.1",
+             "multiprocess==0.70.19", "pox==0.3.7", "ppft==1.7.8", "pyquaternion==0.9.9", "pytorch-msssim==1.0.0",
+             "rawpy==0.28.0", "splines==0.3.0", "tensorly==0.10.0", "viser==0.2.7", "msgspec==0.22.0",
+             "websockets==17.4")
+# their declared requirements outside that closure: imported inside functions or by what the test never runs
+# (ns-export's open3d/pymeshlab/xatlas, ns-process-data's av, the wandb and comet writers, the legacy viewer's socket
+# server, the notebooks, viser's URDF/record3d extras and its client build); nerfstudio pins gsplat 1.4.0, the
+# campaign's gsplat 1.5.3 stands in
+NS_NOT_CARRIED = frozenset({"av", "comet-ml", "cryptography", "gdown", "ipywidgets", "jupyterlab", "mediapy",
+                            "msgpack-numpy", "nuscenes-devkit", "open3d", "plotly", "pymeshlab", "pyngrok",
+                            "python-socketio", "wandb", "xatlas", "nodeenv", "plyfile", "pyliblzfse", "yourdfpy"})
 PIP_DOWNLOAD = ("download", "--no-deps", "--only-binary=:all:", "--python-version", "3.12", "--implementation", "cp",
                 "--platform", "manylinux_2_28_x86_64", "--platform", "manylinux_2_27_x86_64",
                 "--platform", "manylinux_2_17_x86_64", "--platform", "manylinux2014_x86_64")
@@ -143,6 +160,7 @@ class Call:
 
     phases: tuple[tuple[str, int], ...]
     name: str
+    carry: tuple[str, ...] = ()  # the git-ignored paths the call takes along (each lease only what its phases read)
 
     @property
     def budget_s(self) -> int:
@@ -158,6 +176,11 @@ class Call:
                 f"--call {self.name} 2>&1 | tee $OUT/{self.name}.console.log")
 
 
+# what each lease carries: the full lease the scenes its tests and bench read and the nerfstudio wheels, the study its
+# three scenes and the names of the runs earlier leases finished (all of it at once would be 63 of the 64 MiB)
+FULL_CARRY = (".whl", ".whl-ns", ".gpu/site", ".gpu/data/castle-P30", ".gpu/data/fern-12", ".gpu/data/gsplat-test-garden")
+STUDY_CARRY = (".whl", ".gpu/site", ".gpu/study", ".gpu/data/castle-P30", ".gpu/data/fern-12", ".gpu/data/flower-12")
+
 LEASES: dict[str, tuple[Call, ...]] = {
     # setup, tests, train, bench and suite in one call (a second call risks the machine going back in the turnaround, and a new start
     # costs two of the fifteen minutes); the GPU tests and the bench before the whole suite, which gets what is left
@@ -165,13 +188,14 @@ LEASES: dict[str, tuple[Call, ...]] = {
         # measured in the first campaigns (H200, 2026-11-28): setup 63-82 s, tests 55-61 s (a 60 s budget cut them
         # once: 90 leaves room), a 300-step run 15-18 s per method (about 10 s of it Python's and CUDA's start),
         # bench 142 s for both scenes; the suite gets what is left of the 600 s a command may run
-        Call((("setup", 100), ("tests", 90), ("train", 80), ("bench", 160), ("suite", 125), ("pack", 15)), "call1"),
+        Call((("setup", 100), ("tests", 115), ("train", 75), ("bench", 155), ("suite", 110), ("pack", 15)), "call1",
+             FULL_CARRY),
     ),
     # the study, a lease of its own (any later session with a GPU): runs that finish come back, and the next
     # study lease skips them; a run still going when the lease ends is lost
     "study": (
-        Call((("setup", 110), ("study", 10), ("wait", 420), ("pack", 20)), "study1"),
-        Call((("wait", 90), ("pack", 15)), "study2"),
+        Call((("setup", 110), ("study", 10), ("wait", 420), ("pack", 20)), "study1", STUDY_CARRY),
+        Call((("wait", 90), ("pack", 15)), "study2", STUDY_CARRY),
     ),
 }
 
@@ -185,6 +209,8 @@ def check_plan(calls: tuple[Call, ...], device_s: int = LEASE_S) -> list[str]:
             problems.append(f"{call.name}: {call.timeout_s} s is over the {CALL_LIMIT_S} s a command may run")
         if len(call.command()) > COMMAND_CHARS:
             problems.append(f"{call.name}: command of {len(call.command())} characters (at most {COMMAND_CHARS})")
+        if len(call.carry) > CARRY_LIMIT:
+            problems.append(f"{call.name}: {len(call.carry)} carried paths (at most {CARRY_LIMIT})")
         unknown = [p for p, _ in call.phases if p not in PHASES]
         if unknown:
             problems.append(f"{call.name}: unknown phases {unknown}")
@@ -221,12 +247,29 @@ def tree_bytes(root: Path, without_set_aside: bool = False) -> int:
                if (root / p).is_file() and not (without_set_aside and is_set_aside(p)))
 
 
-def travel_bytes(root: Path, carry: tuple[str, ...] = CARRY) -> dict[str, int]:
+def travel_bytes(root: Path, carry: tuple[str, ...]) -> dict[str, int]:
     """Bytes per part of what one call sends: the working tree and each carried path."""
     parts = {"working tree": tree_bytes(root)}
     for c in carry:
         parts[c] = folder_bytes(root / c) if (root / c).exists() else 0
     return parts
+
+
+def planned_carry_bytes(carry: tuple[str, ...], lock: list[dict], ns_lock: list[dict], lpips_bytes: int,
+                        data: Path = SHARED_DATA) -> int:
+    """What ``carry`` will weigh once ``prepare`` ran, from the locks, the scenes where they are and the LPIPS file
+    (the dry run's check, before anything is downloaded or copied)."""
+    total = 0
+    for c in carry:
+        if c == ".whl":
+            total += sum(e["bytes"] for e in lock)
+        elif c == ".whl-ns":
+            total += sum(e["bytes"] for e in ns_lock)
+        elif c == ".gpu/site":
+            total += lpips_bytes
+        elif c.startswith(".gpu/data/"):
+            total += folder_bytes(data / c.removeprefix(".gpu/data/"))
+    return total
 
 
 def set_aside(root: Path) -> list[str]:
@@ -324,9 +367,21 @@ def check_wheels(root: Path, lock: list[dict], image: dict) -> list[str]:
     return problems
 
 
-def download_wheels(dest: Path) -> list[dict]:
+def check_ns_wheels(lock: list[dict], ns_lock: list[dict], image: dict) -> list[str]:
+    """Whether the nerfstudio wheels with the image and the main wheels hold every requirement of theirs, but those
+    outside nerfstudio's import closure (:data:`NS_NOT_CARRIED`), and are the pinned ones."""
+    have = {normalize(p) for p in image["packages"]} | {e["name"] for e in lock} | {e["name"] for e in ns_lock}
+    problems = [f"{e['file']} requires {r}, neither in the device image nor among the wheels"
+                for e in ns_lock for r in e["requires"] if r not in have and r not in NS_NOT_CARRIED]
+    pins = {normalize(w.split("==")[0]): w.split("==")[1] for w in NS_WHEELS}
+    if {e["name"]: e["version"] for e in ns_lock} != pins:
+        problems.append(f"{NS_LOCK_FILE.name} differs from NS_WHEELS: run `prepare --relock`")
+    return problems
+
+
+def download_wheels(dest: Path, wheels: tuple[str, ...] = WHEELS) -> list[dict]:
     dest.mkdir(parents=True, exist_ok=True)
-    subprocess.run([sys.executable, "-m", "pip", *PIP_DOWNLOAD, "-q", "-d", str(dest), *WHEELS], check=True)
+    subprocess.run([sys.executable, "-m", "pip", *PIP_DOWNLOAD, "-q", "-d", str(dest), *wheels], check=True)
     return [lock_entry(w) for w in sorted(dest.glob("*.whl"))]
 
 
@@ -388,7 +443,13 @@ def cmd_prepare(args) -> int:
     lock = json.loads(LOCK_FILE.read_text())
     if not all((WHEEL_DIR / e["file"]).is_file() for e in lock):
         download_wheels(WHEEL_DIR)
-    problems = check_wheels(ROOT, lock, image)
+    if args.relock or not NS_LOCK_FILE.is_file():
+        shutil.rmtree(NS_WHEEL_DIR, ignore_errors=True)
+        NS_LOCK_FILE.write_text(json.dumps(download_wheels(NS_WHEEL_DIR, NS_WHEELS), indent=1) + "\n")
+    ns_lock = json.loads(NS_LOCK_FILE.read_text())
+    if not all((NS_WHEEL_DIR / e["file"]).is_file() for e in ns_lock):
+        download_wheels(NS_WHEEL_DIR, NS_WHEELS)
+    problems = check_wheels(ROOT, lock, image) + check_ns_wheels(lock, ns_lock, image)
     copy_scenes(GPU_DIR)
     copy_lpips_weights(GPU_DIR)
     print(f"prepare: {carry_back_study(ROOT)} study runs of earlier leases carried")
@@ -396,11 +457,12 @@ def cmd_prepare(args) -> int:
         folders = set_aside(ROOT)
         print(f"prepare: {len(folders)} folders of {SET_ASIDE_ROOT} out of the index (restore: `restore`, also done by "
               "`collect`; commit nothing in between)")
-    parts = travel_bytes(ROOT)
-    print("travels per call: " + ", ".join(f"{k} {v / MIB:.1f} MiB" for k, v in parts.items())
-          + f" = {sum(parts.values()) / MIB:.1f} MiB (at most {TRAVEL_BYTES // MIB})")
-    if sum(parts.values()) > TRAVEL_BYTES:
-        problems.append(f"{sum(parts.values()) / MIB:.1f} MiB travel per call, over {TRAVEL_BYTES // MIB} MiB")
+    for lease, calls in LEASES.items():
+        parts = travel_bytes(ROOT, calls[0].carry)
+        print(f"travels per call of the {lease} lease: " + ", ".join(f"{k} {v / MIB:.1f} MiB" for k, v in parts.items())
+              + f" = {sum(parts.values()) / MIB:.1f} MiB (at most {TRAVEL_BYTES // MIB})")
+        if sum(parts.values()) > TRAVEL_BYTES:
+            problems.append(f"{lease}: {sum(parts.values()) / MIB:.1f} MiB travel per call, over {TRAVEL_BYTES // MIB} MiB")
     for p in problems:
         print("prepare: " + p, file=sys.stderr)
     return 1 if problems else 0
@@ -409,7 +471,7 @@ def cmd_prepare(args) -> int:
 def cmd_plan(args) -> int:
     calls = LEASES[args.lease]
     for call in calls:
-        print(json.dumps({"command": call.command(), "carry": list(CARRY), "timeout_s": call.timeout_s}))
+        print(json.dumps({"command": call.command(), "carry": list(call.carry), "timeout_s": call.timeout_s}))
     problems = check_plan(calls, args.device_s)
     for p in problems:
         print("plan: " + p, file=sys.stderr)
@@ -501,6 +563,11 @@ def phase_setup(ctx: Context, budget: float) -> int:
                                  *wheels], budget / 3)
         if code:
             return code
+        ns_wheels = sorted(str(w) for w in NS_WHEEL_DIR.glob("*.whl"))  # carried by the full lease only
+        if ns_wheels and ctx.run("setup", [ctx.python, "-m", "pip", "install", "-q", "--no-index", "--no-deps",
+                                           "--no-compile", *ns_wheels], budget / 6):
+            with ctx.log("setup").open("a") as f:  # the plugin's CUDA test then skips (nerfstudio missing), named
+                f.write("the nerfstudio wheels did not install: tests/nerfstudio_plugin/test_cuda.py skips\n")
         if ctx.run("setup", [ctx.python, "-m", "pip", "install", "-q", "--no-index", "--no-deps",
                              "--no-build-isolation", "-e", "."], budget / 3):
             # an image whose setuptools cannot build it: the entry points without a build (code from the tree)
@@ -708,7 +775,9 @@ def write_study_report(runs: Path, out: Path, settings: StudySettings, data: Pat
         return 0
     argv = [sys.executable, "-m", "kc_splatfacto.cli.bench", *settings.bench_args(data, scenes, seeds),
             "--output-dir", str(out), "--runs-dir", str(runs), "--report-only"]
-    return subprocess.run(argv, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}).returncode
+    # the tree first, the caller's paths kept after it (a dist-info there may be what registers this tree's methods)
+    path = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
+    return subprocess.run(argv, cwd=ROOT, env={**os.environ, "PYTHONPATH": path}).returncode
 
 
 def phase_wait(ctx: Context, budget: float) -> int:
@@ -809,18 +878,20 @@ def cmd_dry_run(args) -> int:
     study lease and reused."""
     image = json.loads(IMAGE_FILE.read_text())
     lock = json.loads(LOCK_FILE.read_text())
-    problems = check_plan(LEASES["full"]) + check_plan(LEASES["study"]) + check_wheels(ROOT, lock, image)
+    ns_lock = json.loads(NS_LOCK_FILE.read_text())
+    problems = (check_plan(LEASES["full"]) + check_plan(LEASES["study"]) + check_wheels(ROOT, lock, image)
+                + check_ns_wheels(lock, ns_lock, image))
     sys.path.insert(0, str(ROOT))
     from kc_splatfacto.lpips import weights_path
 
-    carried = (sum(e["bytes"] for e in lock) + sum(folder_bytes(SHARED_DATA / s) for s in SCENES)
-               + folder_bytes(weights_path("alex")))
     tree = tree_bytes(ROOT, without_set_aside=True)
-    print(f"dry-run: travel per call {(tree + carried) / MIB:.1f} MiB with docs/results set aside "
-          f"(wheels {sum(e['bytes'] for e in lock) / MIB:.1f}, scenes and LPIPS weights "
-          f"{(carried - sum(e['bytes'] for e in lock)) / MIB:.1f}, tree {tree / MIB:.1f})")
-    if tree + carried > TRAVEL_BYTES:
-        problems.append(f"{(tree + carried) / MIB:.1f} MiB would travel per call (at most {TRAVEL_BYTES // MIB})")
+    for lease, calls in LEASES.items():
+        carried = planned_carry_bytes(calls[0].carry, lock, ns_lock, folder_bytes(weights_path("alex")))
+        print(f"dry-run: the {lease} lease carries {(tree + carried) / MIB:.1f} MiB per call with docs/results set "
+              f"aside (tree {tree / MIB:.1f}, {', '.join(calls[0].carry)} {carried / MIB:.1f})")
+        if tree + carried > TRAVEL_BYTES:
+            problems.append(f"{lease}: {(tree + carried) / MIB:.1f} MiB would travel per call (at most "
+                            f"{TRAVEL_BYTES // MIB})")
     work = Path(args.workdir)
     hidden = work / "absent-on-device"
     hidden.mkdir(parents=True, exist_ok=True)

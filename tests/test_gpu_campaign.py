@@ -36,6 +36,13 @@ def test_every_lease_fits_the_device_tools_limits():
     assert [p for c in campaign.LEASES["full"] for p, _ in c.phases] == ["setup", "tests", "train", "bench", "suite",
                                                                          "pack"]
     assert "study" in [p for c in campaign.LEASES["study"] for p, _ in c.phases]
+    # each lease carries what its phases read: the full lease the scenes of the GPU tests and the bench and the
+    # nerfstudio plugin's wheels, the study its three scenes and the runs earlier leases finished
+    full, = campaign.LEASES["full"]
+    assert {".whl", ".whl-ns", ".gpu/site", ".gpu/data/castle-P30", ".gpu/data/fern-12",
+            ".gpu/data/gsplat-test-garden"} <= set(full.carry)
+    assert all({".whl", ".gpu/site", ".gpu/study", ".gpu/data/castle-P30", ".gpu/data/fern-12", ".gpu/data/flower-12"}
+               <= set(c.carry) for c in campaign.LEASES["study"])
 
 
 def test_a_plan_over_the_limits_is_named():
@@ -65,6 +72,13 @@ def test_the_wheels_and_the_image_hold_what_the_project_imports():
     # a wheel's requirement that nothing provides (tyro needs docstring-parser, which the image lacks)
     without = [e for e in lock if e["name"] != "docstring-parser"]
     assert any("requires docstring-parser" in p for p in campaign.check_wheels(PROJECT_ROOT, without, image))
+    # the nerfstudio plugin's wheels: nerfstudio's import closure, whatever it needs besides is in the image
+    ns_lock = json.loads(campaign.NS_LOCK_FILE.read_text())
+    assert campaign.check_ns_wheels(lock, ns_lock, image) == []
+    without = [e for e in ns_lock if e["name"] != "viser"]  # ns-train imports the viewer at module level
+    problems = campaign.check_ns_wheels(lock, without, image)
+    assert any(p.startswith("nerfstudio-1.1.5") and p.endswith("requires viser, neither in the device image nor "
+                                                                "among the wheels") for p in problems)
 
 
 def test_wheel_requirements_read_for_cpython_312_on_linux(tmp_path):
