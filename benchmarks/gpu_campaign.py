@@ -591,11 +591,11 @@ def phase_setup(ctx: Context, budget: float) -> int:
 
 
 GPU_TESTS = ("tests/render/test_gsplat_cuda.py", "tests/losses/test_wavelets.py::test_cuda_matches_cpu",
-             "tests/nerfstudio_plugin/test_cuda.py",
              "tests/losses/test_fused_frequency.py::test_the_fused_terms_on_cuda_equal_the_cpu_path",
              "tests/losses/test_photometric.py::test_stacked_dssim_on_cuda_equals_kornia",
              "tests/model/test_image_loss.py::test_cuda_graph_replay_equals_the_eager_loss_on_a_gpu",
-             "tests/model/test_mcmc.py::test_relocation_on_cuda_is_gsplats_kernel_and_agrees_with_the_torch_formula")
+             "tests/model/test_mcmc.py::test_relocation_on_cuda_is_gsplats_kernel_and_agrees_with_the_torch_formula",
+             "tests/nerfstudio_plugin/test_cuda.py")  # last: it needs the nerfstudio wheels and is the slowest
 
 
 # failures and errors named in the short summary (-rfE) with one line each (--tb=line): under pytest-xdist the
