@@ -119,11 +119,15 @@ def plot_kurtosis_gap_comparison(records_by_method: dict[str, Iterable[dict]], p
     gaps = {method: kurtosis_gap(records) for method, records in records_by_method.items()}
     if not gaps:
         raise ValueError("plot_kurtosis_gap_comparison: no method given")
-    levels = next(iter(gaps.values()))[1].shape[1]
+    # methods may decompose into different numbers of levels (another wavelet or level count): each is drawn at the
+    # levels it has
+    levels = max(gap.shape[1] for _, gap in gaps.values())
     fig, axes = plt.subplots(1, levels, figsize=(4.2 * levels, 3.4), squeeze=False)
     for level in range(levels):
         ax = axes[0, level]
         for i, (method, (steps, gap)) in enumerate(gaps.items()):
+            if level >= gap.shape[1]:
+                continue
             ax.plot(steps, running_mean(gap[:, level], window), color=plt.get_cmap("tab10")(i), label=method)
         ax.set_title(f"level {level + 1}: |kurtosis render - GT| (running mean of {window})", fontsize=8)
         ax.set_xlabel("step")

@@ -102,3 +102,13 @@ def test_running_mean_and_gap_against_numpy(tmp_path):
     path = diagnostics.plot_kurtosis_gap_comparison({"a": records, "b": records[::2]}, tmp_path / "gap.png", window=3)
     image = cv2.imread(str(path), cv2.IMREAD_COLOR)
     assert image is not None and image.std() > 0
+
+
+def test_the_gap_comparison_draws_methods_of_different_level_counts(tmp_path):
+    # a two-level method (splatfacto-lowpass's Haar) beside a three-level one: each drawn at the levels it has
+    three = [{"kind": "train", "step": s, "kurtosis_render": [float(s)] * 9, "kurtosis_gt": [1.0] * 9} for s in range(8)]
+    two = [{"kind": "train", "step": s, "kurtosis_render": [float(s)] * 6, "kurtosis_gt": [2.0] * 6} for s in range(8)]
+    for order in ({"three": three, "two": two}, {"two": two, "three": three}):
+        path = diagnostics.plot_kurtosis_gap_comparison(order, tmp_path / "gap.png", window=3)
+        image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        assert image is not None and image.shape[1] > image.shape[0] * 3  # three panels side by side
