@@ -44,7 +44,7 @@ def state_hash(trainer: Trainer) -> str:
     """sha256 (first 16 hex digits) over the Gaussian parameters and the density-control statistics, by name."""
     digest = hashlib.sha256()
     tensors = {f"param.{k}": v for k, v in trainer.model.gauss_params.items()}
-    strategy_state = trainer.pipeline.state_dict().get("strategy_state") or {}
+    strategy_state = trainer.state.strategy_state
     tensors.update({f"strategy.{k}": v for k, v in strategy_state.items() if isinstance(v, torch.Tensor)})
     for name in sorted(tensors):
         value = tensors[name].detach().cpu().contiguous()

@@ -10,7 +10,7 @@ operating system kills the process (no checkpoint since the last periodic one, n
   remedies;
 - after each density-control step that changed the count (:meth:`MemoryGuard.after_density_control`), the peak memory
   since the previous check plus what the new Gaussians will cost is compared with the budget; past it, the model's
-  growth is capped at its current count (``model.cap_gaussians``) and one line says so, with the numbers and the
+  growth is capped at its current count (the training state's ``cap_gaussians``) and one line says so, with the numbers and the
   remedies. The run then trains on at that count and ends with its checkpoint, instead of being killed.
 
 :func:`bytes_per_gaussian` and :data:`STEP_BYTES_PER_PIXEL` come from ``benchmarks/bench_memory.py`` (the table in

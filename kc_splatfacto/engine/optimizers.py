@@ -15,6 +15,7 @@ in :mod:`kc_splatfacto.model.ops` replaces a group's parameter and rewrites that
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import torch
@@ -119,7 +120,7 @@ class OptimizersConfig:
         return ["means", "features_dc", "features_rest", "opacities", "scales", "quats"]
 
     def setup(
-        self, params: torch.nn.ParameterDict, steps_scale: float = 1.0
+        self, params: Mapping[str, torch.nn.Parameter], steps_scale: float = 1.0
     ) -> tuple[dict[str, torch.optim.Optimizer], dict[str, torch.optim.lr_scheduler.LRScheduler]]:
         """One Adam per group (keyed like ``params``) and the schedules of the groups that have one, their nominal
         lengths multiplied by ``steps_scale`` (the model's)."""

@@ -1,6 +1,7 @@
 """The training loop: ``Trainer(config).train() -> run folder``.
 
-The trainer optimises, times, logs and checkpoints; it reaches the model only through public methods. A bad step
+The trainer keeps the loop, the clocks, checkpoints, evaluation and logging; each step is the training state's
+(:class:`~kc_splatfacto.engine.training_state.TrainingState`: the model, its optimizers, density control). A bad step
 (non-finite render, loss or gradient) is skipped, non-finite Gaussians are removed, and Ctrl-C or SIGTERM saves a
 checkpoint from which a resume continues bit for bit. Step convention, records, resume rules and stiff cases:
 docs/training.md and docs/stability.md.
@@ -11,7 +12,6 @@ from __future__ import annotations
 import copy
 import datetime
 import functools
-import math
 import random
 import time
 import warnings
@@ -48,20 +48,14 @@ from kc_splatfacto.engine.run_guard import (
     recorded_dataparser,
 )
 from kc_splatfacto.engine.signals import install_stop_handlers, restore_handlers
+from kc_splatfacto.engine.training_state import StepHooks, StepResult, TrainingState
 from kc_splatfacto.engine.validation import validate_config
 from kc_splatfacto.lpips import NETWORKS
-from kc_splatfacto.render.errors import NonFiniteInputError
 from kc_splatfacto.settings import drawn_from, each, integer, path_component, setting
 
-GRAD_OVERFLOW = 1e18
-"""a gradient this large would overflow Adam's squared-gradient average in float32 (1e36 < 3.4e38 just fits)"""
 PARAMETER_SCAN_EVERY = 100
 """steps between full scans of the parameters for NaN/inf (the rasterizer reports what it reads every step)"""
 PHASES = ("render", "losses", "backward", "optimizer", "density_control")
-
-# a skipped (non-finite) step still advances the schedules, which torch reports as a misuse when no optimizer step
-# came before (a bad first step); it is deliberate here
-_SCHEDULE_BEFORE_OPTIMIZER = "Detected call of `lr_scheduler.step\\(\\)` before `optimizer.step\\(\\)`"
 
 
 TIMESTAMP_FORMAT = "%Y-%m-%d_%H%M%S"
@@ -191,8 +185,7 @@ class Trainer:
         self._run_dir: Path | None = None
         self._dataparser: DataParserConfig | None = None  # the resolved one, from plan_run
         self._pipeline: Pipeline | None = None
-        self.optimizers: dict[str, torch.optim.Optimizer] = {}
-        self.schedulers: dict[str, Any] = {}
+        self._state: TrainingState | None = None
         self.start_step = 0
         self.interrupted = False
         self.phase_times = {name: 0.0 for name in PHASES}
@@ -222,6 +215,21 @@ class Trainer:
     @property
     def pipeline(self) -> Pipeline:
         return _set_up(self._pipeline, "pipeline")
+
+    @property
+    def state(self) -> TrainingState:
+        """The training state: the model, its optimizers and schedules, density control and its state."""
+        return _set_up(self._state, "state")
+
+    @property
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        """The training state's optimizers, one per parameter group."""
+        return self.state.optimizers
+
+    @property
+    def schedulers(self) -> dict[str, Any]:
+        """The training state's learning-rate schedules."""
+        return self.state.schedulers
 
     @property
     def run_dir(self) -> Path:
@@ -269,7 +277,7 @@ class Trainer:
         check_training_image_sizes(self.datamanager, cfg.pipeline.model)
         announce_seed_points(self.datamanager, cfg.pipeline.model)
         self.model.train()
-        self._build_optimizers()
+        self._state = TrainingState(self.model, cfg.optimizers)
         checkpoint = plan.checkpoint
         self._run_dir = plan.run_dir or self._new_run_dir()
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -289,13 +297,13 @@ class Trainer:
                                          announce=_warn_one_line)
         if cap is not None:
             self._memory.cap = int(cap)
-            self.model.cap_gaussians(int(cap))
+            self.state.cap_gaussians(int(cap))
 
     def _check_memory(self, step: int) -> None:
         """After density control changed the count: growth capped at the memory budget (one line, one record)."""
         if self._memory is None:
             return
-        line = self._memory.after_density_control(step, self.model.num_points, self.model.cap_gaussians)
+        line = self._memory.after_density_control(step, self.model.num_points, self.state.cap_gaussians)
         if line is not None:
             self.writer.write({"kind": "memory_cap", "step": step, "elapsed_s": self._elapsed(),
                                "train_s": self._train_s, "gaussian_count": self.model.num_points,
@@ -311,21 +319,13 @@ class Trainer:
             self.config.timestamp = candidate.name
         return candidate
 
-    def _build_optimizers(self) -> None:
-        # nominal schedules (nerfstudio's): steps_scale only, never max_num_iterations, so a short run is the first
-        # steps of the full one
-        self.optimizers, self.schedulers = self.config.optimizers.setup(
-            self.model.parameter_groups(), steps_scale=self.config.pipeline.model.steps_scale
-        )
-
     # ----------------------------------------------------------------------------------------------- checkpoints
     def _checkpoint_payload(self, step: int) -> dict[str, Any]:
         return {
             "step": step,
             RUN_IDENTITY_KEY: run_identity(self.config),
-            **self.pipeline.state_dict(),  # model, strategy_state, datamanager (top-level: the format stays readable)
-            "optimizers": {k: opt.state_dict() for k, opt in self.optimizers.items()},
-            "schedulers": {k: s.state_dict() for k, s in self.schedulers.items()},
+            **self.pipeline.state_dict(),  # model, datamanager (top-level: the format stays readable)
+            **self.state.state_dict(),  # strategy_state, optimizers, schedulers
             "rng": {
                 "torch": torch.get_rng_state(),
                 "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
@@ -348,11 +348,7 @@ class Trainer:
 
     def _restore(self, ckpt: dict[str, Any]) -> None:
         self.pipeline.load_state_dict(ckpt, step=int(ckpt["step"]))
-        self._build_optimizers()
-        for name, state in ckpt["optimizers"].items():
-            self.optimizers[name].load_state_dict(state)
-        for name, state in ckpt["schedulers"].items():
-            self.schedulers[name].load_state_dict(state)
+        self.state.load_state_dict(ckpt)
         rng = ckpt["rng"]
         torch.set_rng_state(rng["torch"].cpu())
         if rng.get("cuda") is not None and torch.cuda.is_available():
@@ -408,7 +404,6 @@ class Trainer:
 
     # ----------------------------------------------------------------------------------------------- one step
     def _bad_step(self, step: int, reason: str) -> None:
-        self.model.zero_grad(set_to_none=True)
         self._bad_in_a_row += 1
         self.writer.write({"kind": "bad_step", "step": step, "elapsed_s": self._elapsed(), "train_s": self._train_s,
                            "reason": reason, "consecutive": self._bad_in_a_row})
@@ -421,86 +416,35 @@ class Trainer:
                 f"(see docs/stability.md)."
             )
 
-    def _step_problem(self, loss: torch.Tensor, loss_dict: dict[str, torch.Tensor], rgb: torch.Tensor) -> str | None:
-        """Why the step just back-propagated must be skipped, or None: a non-finite render, loss or gradient, or a
-        gradient large enough to overflow Adam's squared average. One host synchronisation on a good step (one flag
-        reduced on the device); the reason is worked out only for a bad one."""
-        names, peaks = self.model.gradient_peaks()
-        good = (torch.isfinite(rgb).all() & torch.isfinite(loss) & torch.isfinite(peaks).all()
-                & (peaks.max() < GRAD_OVERFLOW))  # a non-finite render is skipped even where its loss is finite
-        if bool(good):
-            return None
-        if not bool(torch.isfinite(rgb).all()):
-            return "non-finite render"
-        if not bool(torch.isfinite(loss)):
-            terms = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in loss_dict.items())
-            return f"non-finite loss ({terms})"
-        bad = [k for k, v in zip(names, peaks.tolist()) if not (math.isfinite(v) and v < GRAD_OVERFLOW)]
-        return f"non-finite or overflowing gradient of {bad}"
-
-    def _forward_backward(self, step: int) -> tuple[str | None, Any, dict[str, torch.Tensor], Any]:
-        """Render, losses and gradients of step ``step``: (why the step must be skipped or None, outputs, loss dict,
-        batch). Non-finite Gaussians are removed here: found by the rasterizer while it reads them
-        (``NonFiniteInputError``) and by a full scan every ``PARAMETER_SCAN_EVERY`` steps for values that render
-        finitely (an infinite opacity logit, ...)."""
-        model = self.model
-        removed = 0
+    def _take_step(self, step: int) -> StepResult:
+        """Step ``step`` (0-based) by the training state, on the next training view. Every ``PARAMETER_SCAN_EVERY``
+        steps a full scan first removes Gaussians whose values render finitely but are not (an infinite opacity
+        logit, ...); a step that removed any is skipped before its view is drawn (the view goes to the next step).
+        Those the rasterizer finds while it reads them are removed by the state's step."""
         if step % PARAMETER_SCAN_EVERY == 0:
-            removed = model.remove_non_finite_gaussians(self.optimizers)
+            removed = self.state.remove_non_finite_gaussians()
             self._lap("optimizer")
-        if removed:  # the step is skipped before its training view is drawn: the view goes to the next step
-            return f"non-finite parameters: {removed} Gaussians removed", None, {}, None
-        try:
-            outputs, batch = self.pipeline.train_view(step)
-        except NonFiniteInputError:
-            removed = model.remove_non_finite_gaussians(self.optimizers)
-            if not removed:  # a non-finite camera, not a parameter: a real error
-                raise
-            return f"non-finite parameters: {removed} Gaussians removed", None, {}, None
-        self._lap("render")
-        loss_dict = self.pipeline.train_losses(outputs, batch)
-        self._lap("losses")
-        loss = torch.stack(list(loss_dict.values())).sum()
-        self._log_gradient_shares(step + 1, loss_dict, outputs["rgb"], loss)
-        self._lap_start = time.perf_counter()  # the shares are logging, not a phase of the step
-        loss.backward()
-        self._lap("backward")
-        return self._step_problem(loss, loss_dict, outputs["rgb"]), outputs, loss_dict, batch
+            if removed:
+                return self.state.skip(f"non-finite parameters: {removed} Gaussians removed")
+        hooks = StepHooks(lap=self._lap, inspect_loss=functools.partial(self._log_gradient_shares, step + 1))
+        return self.state.step(step, self.datamanager.next_train(), hooks)
 
     def train_iteration(self, step: int) -> Mapping[str, float]:
         """Take optimization step ``step`` (0-based). Returns the loss terms and ``loss`` as a :class:`StepLosses`
         (read from the device only when asked; empty for a skipped step)."""
         self._lap_start = time.perf_counter()
-        bad, outputs, loss_dict, batch = self._forward_backward(step)
-        if bad is None:
-            for optimizer in self.optimizers.values():
-                optimizer.step()
-                optimizer.zero_grad(set_to_none=True)
-            # the schedules advance before density control, as in gsplat's simple_trainer and nerfstudio: MCMC's noise
-            # reads the means' learning rate from their optimizer, the rate of the next step
-            self._advance_schedules()
-            self._lap("optimizer")
-            report = self.pipeline.after_optimizer_step(outputs, self.optimizers)
-            self._lap("density_control")
-            if any(report.values()):
-                self.writer.write({"kind": "densify", "step": step + 1, "elapsed_s": self._elapsed(),
-                                   "train_s": self._train_s, "gaussian_count": self.model.num_points, **report})
-                self._check_memory(step + 1)
-        else:
-            with warnings.catch_warnings():  # only around a skipped step: a filter change re-arms once-only warnings
-                warnings.filterwarnings("ignore", message=_SCHEDULE_BEFORE_OPTIMIZER)
-                self._advance_schedules()
+        result = self._take_step(step)
+        if result.skipped is None and any(result.density.values()):
+            self.writer.write({"kind": "densify", "step": step + 1, "elapsed_s": self._elapsed(),
+                               "train_s": self._train_s, "gaussian_count": self.model.num_points, **result.density})
+            self._check_memory(step + 1)
         self.phase_steps += 1
-        if bad is not None:
-            self._bad_step(step + 1, bad)
+        if result.skipped is not None:
+            self._bad_step(step + 1, result.skipped)
             return {}
         self._bad_in_a_row = 0
-        self._last_outputs, self._last_batch = outputs, batch
-        return StepLosses({k: v.detach() for k, v in loss_dict.items()})
-
-    def _advance_schedules(self) -> None:
-        for scheduler in self.schedulers.values():
-            scheduler.step()
+        self._last_outputs, self._last_batch = result.outputs, result.batch
+        return StepLosses(result.losses)
 
     # ----------------------------------------------------------------------------------------------- the loop
     def train(self) -> Path:
@@ -564,8 +508,11 @@ class Trainer:
 
     def _log_gradient_shares(self, step: int, loss_dict: dict[str, torch.Tensor], image: torch.Tensor,
                              loss: torch.Tensor) -> None:
+        """Between a step's loss and its backward (:class:`StepHooks`): the share of each loss term in the image's
+        gradient, every ``steps_per_gradient_shares`` steps; its time is left out of the step's."""
         every = self.config.logging.steps_per_gradient_shares
         if every <= 0 or step % every != 0 or not bool(torch.isfinite(loss)):  # a bad step has no shares to log
+            self._lap_start = time.perf_counter()
             return
         start, start_cpu = time.perf_counter(), time.process_time()
         record = {"kind": "gradient_shares", "step": step, "elapsed_s": self._elapsed(), "train_s": self._train_s,
@@ -573,6 +520,7 @@ class Trainer:
         self.writer.write(record)
         self._side_s += time.perf_counter() - start
         self._side_cpu_s += time.process_time() - start_cpu
+        self._lap_start = time.perf_counter()  # the shares are logging, not a phase of the step
 
     def _log_train(self, step: int, losses: Mapping[str, float]) -> None:
         record: dict[str, Any] = {"kind": "train", "step": step, "elapsed_s": self._elapsed(), "train_s": self._train_s,

@@ -20,11 +20,10 @@ import torch.nn.functional as F
 from kc_splatfacto.data.outputs import Cameras
 from kc_splatfacto.losses.frequency import FrequencyLoss, FrequencyLossConfig, WaveletBands, mean_band_kurtosis
 from kc_splatfacto.metrics import mean_ssim, psnr
-from kc_splatfacto.model import ops
 from kc_splatfacto.model.gaussians import init_gaussian_params
 from kc_splatfacto.model.image_loss import ImageLoss
 from kc_splatfacto.model.mcmc import MCMCStrategy
-from kc_splatfacto.model.strategy import DefaultStrategy, NoGaussiansLeftError
+from kc_splatfacto.model.strategy import DefaultStrategy
 from kc_splatfacto.render import SplitSH, rasterization
 from kc_splatfacto.render.constants import FAR_PLANE, NEAR_PLANE, SH_MAX_DEGREE
 from kc_splatfacto.render.rasterization import Rasterizer, RenderMode
@@ -297,7 +296,8 @@ def rescale_cameras(camera: Cameras, d: int) -> Cameras:
 
 
 class SplatfactoModel(torch.nn.Module):
-    """Gaussians, density control and the losses of one scene.
+    """The Gaussians of one scene, their rendering and the losses (density control, the optimizers and the taking of
+    a step belong to :class:`~kc_splatfacto.engine.training_state.TrainingState`).
 
     Args:
         config: the model config.
@@ -331,12 +331,6 @@ class SplatfactoModel(torch.nn.Module):
             num_random=config.num_random,
             random_scale=config.random_scale,
         )
-        self.strategy = config.density_strategy(self.num_train_data)
-        if isinstance(self.strategy, MCMCStrategy):
-            self.strategy.check_initial_count(len(self.gauss_params["means"]))
-            self.strategy_state = self.strategy.initialize_state()
-        else:
-            self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene_scale)
         self.step = 0
         """0-based index of the training step being taken, which every schedule reads (written by :meth:`set_step`
         alone)"""
@@ -348,7 +342,7 @@ class SplatfactoModel(torch.nn.Module):
     # ----------------------------------------------------------------------------------------------- the step
     def set_step(self, step: int) -> None:
         """Make ``step`` (0-based) the step being taken: the resolution, the SH degree and density control follow
-        it. The pipeline calls it before each training step and when it restores a checkpoint."""
+        it. The training state calls it at each training step, the pipeline when it restores a checkpoint."""
         self.step = int(step)
 
     def schedule_state(self) -> dict[str, int]:
@@ -415,21 +409,6 @@ class SplatfactoModel(torch.nn.Module):
                 raise KeyError(f"checkpoint has no Gaussian parameter '{name}'")
             self.gauss_params[name] = torch.nn.Parameter(state[key].detach().clone().to(device))
 
-    @torch.no_grad()
-    def remove_non_finite_gaussians(self, optimizers: dict[str, torch.optim.Optimizer]) -> int:
-        """Remove every Gaussian with a non-finite parameter (with its optimizer state and density-control
-        statistics); returns how many were removed. Raises NoGaussiansLeftError when none would be left."""
-        params = self.gauss_params
-        if all(bool(torch.isfinite(p).all()) for p in params.values()):
-            return 0
-        bad_rows = torch.zeros(len(params["means"]), dtype=torch.bool, device=params["means"].device)
-        for p in params.values():
-            bad_rows |= ~torch.isfinite(p.reshape(len(p), -1)).all(dim=-1)
-        ops.remove(params, optimizers, self.strategy_state, bad_rows)
-        if len(params["means"]) == 0:
-            raise NoGaussiansLeftError("every Gaussian had non-finite parameters and was removed: nothing left to train")
-        return int(bad_rows.sum())
-
     def _fixed_background(self) -> torch.Tensor:
         colors = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0), "random": EVAL_BACKGROUND}
         return torch.tensor(colors[self.config.background_color], dtype=torch.float32)
@@ -449,16 +428,19 @@ class SplatfactoModel(torch.nn.Module):
         return 2 ** max(self.config.num_downscales - self.step // self.schedule.resolution_schedule, 0)
 
     # ----------------------------------------------------------------------------------------------- rendering
-    def get_outputs(self, camera: Cameras) -> dict[str, Any]:
+    def get_outputs(self, camera: Cameras, absgrad: bool = False) -> dict[str, Any]:
         """Render one camera.
 
         Args:
             camera: Cameras of length 1.
+            absgrad: also accumulate the absolute gradient of the projected means (``info["means2d"].absgrad``),
+                for a density-control strategy that reads it.
         Returns:
             ``rgb`` [H, W, 3] in [0, 1], ``depth`` [H, W, 1] (expected depth; None in training unless
             ``output_depth_during_training``), ``accumulation`` [H, W, 1], ``background`` [3], and ``info``: the
-            rasterizer's (``means2d``, ``radii``, ...), what density control reads (:meth:`before_backward`,
-            :meth:`step_post_backward`). In training H, W are the size at the current training resolution.
+            rasterizer's (``means2d``, ``radii``, ...), what density control reads (the training state's strategy,
+            :mod:`kc_splatfacto.engine.training_state`). In training H, W are the size at the current training
+            resolution.
         """
         if len(camera) != 1:
             raise ValueError(f"get_outputs renders one camera at a time, got {len(camera)}")
@@ -490,7 +472,7 @@ class SplatfactoModel(torch.nn.Module):
             far_plane=FAR_PLANE,
             render_mode=render_mode,
             rasterize_mode=self.config.rasterize_mode,
-            absgrad=self.strategy.absgrad,
+            absgrad=absgrad,
             rasterizer=self.config.rasterizer,
         )
         background = self._get_background_color()
@@ -655,30 +637,3 @@ class SplatfactoModel(torch.nn.Module):
             with torch.no_grad():
                 image = self._kurtosis_probe.bands(_bchw(image.detach().float()), covariance=False)
         return mean_band_kurtosis(image)
-
-    # ----------------------------------------------------------------------------------------------- density control
-    def before_backward(self, outputs: dict[str, Any]) -> None:
-        """Density control's hook between a training render and its backward: keep the gradient of the projected
-        means (``outputs["info"]``, from :meth:`get_outputs`)."""
-        self.strategy.step_pre_backward(self.gauss_params, {}, self.strategy_state, self.step, outputs["info"])
-
-    def step_post_backward(self, optimizers: dict[str, torch.optim.Optimizer], outputs: dict[str, Any]) -> dict[str, int]:
-        """Density control after the optimizer step of the current step: statistics from ``outputs`` (this step's
-        render, after :meth:`before_backward` and the backward), then grow / prune / reset on the schedule (mcmc:
-        relocate / add, and noise scaled by the means' learning rate, read from their optimizer: the rate after this
-        step's schedule update, as gsplat's simple_trainer and nerfstudio pass it). Returns the counts of what it
-        did."""
-        if isinstance(self.strategy, MCMCStrategy):
-            means_lr = optimizers["means"].param_groups[0]["lr"]
-            return self.strategy.step_post_backward(self.gauss_params, optimizers, self.strategy_state, self.step,
-                                                    outputs["info"], lr=means_lr)
-        return self.strategy.step_post_backward(self.gauss_params, optimizers, self.strategy_state, self.step,
-                                                outputs["info"])
-
-    def cap_gaussians(self, count: int) -> None:
-        """Density control adds no Gaussians past ``count`` from now on (a memory budget reached): the strategy's
-        cap lowered (``max_gaussians``; an MCMC strategy's ``cap_max``), never raised."""
-        for name in ("max_gaussians", "cap_max"):
-            if hasattr(self.strategy, name):
-                current = getattr(self.strategy, name)
-                setattr(self.strategy, name, count if current is None else min(int(current), int(count)))

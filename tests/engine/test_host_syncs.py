@@ -28,7 +28,7 @@ SPEC.loader.exec_module(host_syncs)
 KEPT = {
     # whether the step is good (render, loss and gradients reduced to one flag on the device): a bad step must be
     # skipped before the optimizer applies it, so the verdict is needed on the host before the update
-    ("_local_scalar_dense", "engine/trainer.py _step_problem"): 1,
+    ("_local_scalar_dense", "engine/training_state.py _problem"): 1,
 }
 
 

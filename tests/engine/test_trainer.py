@@ -267,7 +267,7 @@ def test_steps_scale_compresses_every_schedule(tmp_path):
     config = tiny_demo_config("splatfacto", tmp_path, steps_scale=0.1, num_downscales=2)
     trainer = Trainer(config)
     trainer.setup()
-    model, strategy = trainer.model, trainer.model.strategy
+    model, strategy = trainer.model, trainer.state.strategy
     assert (strategy.refine_start_iter, strategy.refine_every, strategy.reset_every) == (50, 10, 300)
     assert (strategy.refine_stop_iter, strategy.refine_scale2d_stop_iter) == (1500, 400)
     assert strategy.pause_refine_after_reset == 12 + 10
@@ -315,7 +315,7 @@ def test_schedules_do_not_depend_on_max_num_iterations(tmp_path, steps_scale):
     short, long = trainers[800].model, trainers[30000].model
     for field in ("refine_start_iter", "refine_every", "reset_every", "refine_stop_iter", "refine_scale2d_stop_iter",
                   "pause_refine_after_reset"):
-        assert getattr(short.strategy, field) == getattr(long.strategy, field), field
+        assert getattr(trainers[800].state.strategy, field) == getattr(trainers[30000].state.strategy, field), field
     for step in range(0, 800, 7):
         short.set_step(step)
         long.set_step(step)
@@ -354,8 +354,8 @@ def test_a_non_finite_render_is_skipped_even_when_its_loss_is_finite(tmp_path):
     model = trainer.model
     original_outputs, original_losses = model.get_outputs, model.get_loss_dict
 
-    def poisoned_outputs(camera):
-        outputs = original_outputs(camera)
+    def poisoned_outputs(camera, **kwargs):
+        outputs = original_outputs(camera, **kwargs)
         if model.step == 5:
             outputs["rgb"] = outputs["rgb"].clone()
             outputs["rgb"][0, 0, 0] = float("nan")

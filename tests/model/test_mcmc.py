@@ -14,7 +14,9 @@ from scipy.spatial.transform import Rotation
 from scipy.special import binom
 
 from kc_splatfacto.engine import trainer as trainer_module
+from kc_splatfacto.engine.optimizers import OptimizersConfig
 from kc_splatfacto.engine.trainer import Trainer
+from kc_splatfacto.engine.training_state import TrainingState
 from kc_splatfacto.model import ops
 from kc_splatfacto.model.mcmc import GaussianCapError, MCMCStrategy
 from kc_splatfacto.model.relocation import MAX_COPIES, compute_relocation, relocation_torch
@@ -177,14 +179,18 @@ def test_noise_on_the_means_is_the_covariance_times_the_gate_times_lr_times_nois
 
 def test_a_cap_below_the_seed_points_is_a_one_line_error_naming_the_field():
     config = SplatfactoModelConfig(strategy="mcmc", max_gs_num=10)
+
+    def train(model_config, **setup):  # the training state builds density control
+        return TrainingState(model_config.setup(**setup), OptimizersConfig())
+
     with pytest.raises(GaussianCapError) as raised:
-        config.setup(seed_points=(torch.rand(25, 3), None))
+        train(config, seed_points=(torch.rand(25, 3), None))
     message = str(raised.value)
     assert isinstance(raised.value, ValueError) and "\n" not in message
     assert "max_gs_num (10)" in message and "25" in message and "--pipeline.model.max-gs-num" in message
     with pytest.raises(GaussianCapError):  # random initialization counts too
-        dataclasses.replace(config, num_random=11).setup()
-    assert dataclasses.replace(config, num_random=10).setup().num_points == 10  # at the cap is allowed
+        train(dataclasses.replace(config, num_random=11))
+    assert train(dataclasses.replace(config, num_random=10)).model.num_points == 10  # at the cap is allowed
 
 
 def _tiny_mcmc_config(output_dir: Path, iterations: int, cap: int):

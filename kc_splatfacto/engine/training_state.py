@@ -1,0 +1,246 @@
+"""The training state: the one owner of what a training step changes (gsplat ``simple_trainer``'s Runner, less the
+loop).
+
+:class:`TrainingState` holds the model (the Gaussians, their rendering and the loss), one Adam per parameter group
+and the learning-rate schedules, the density-control strategy (any object with gsplat's ``Strategy`` interface:
+:class:`~kc_splatfacto.model.strategy.DefaultStrategy`, :class:`~kc_splatfacto.model.mcmc.MCMCStrategy`) and the
+strategy's state. :meth:`TrainingState.step` takes one step on one batch:
+
+1. the model set to the step, the batch's camera rendered, the strategy's pre-backward hook on the render's ``info``;
+2. the loss terms (``model.get_loss_dict``), their sum, backward;
+3. the verdict, one host synchronisation: a non-finite render, loss or gradient, or a gradient that would overflow
+   Adam, skips the update;
+4. the optimizers step and the schedules advance, before density control: MCMC's noise reads the means' rate of the
+   next step, as gsplat's ``simple_trainer`` and nerfstudio pass it;
+5. density control on the render's ``info``, with the optimizers, whose state it rewrites when it adds, splits,
+   relocates or removes Gaussians.
+
+The render's ``info`` stays inside the step. The trainer keeps the loop, the clocks, checkpoints, evaluation and
+logging: it times the phases and looks at the loss terms before backward through :class:`StepHooks`.
+
+>>> import copy
+>>> from kc_splatfacto.data.demo import DemoDataParserConfig
+>>> from kc_splatfacto.registry import discover_methods
+>>> config = copy.deepcopy(discover_methods()["kc-splatfacto"].config)
+>>> config.pipeline.datamanager.dataparser = DemoDataParserConfig(width=64, height=48)
+>>> pipeline = config.pipeline.setup(dataparser=config.pipeline.datamanager.resolve_dataparser())
+>>> state = TrainingState(pipeline.model.train(), config.optimizers)
+>>> result = state.step(0, pipeline.datamanager.next_train())
+>>> result.skipped, sorted(result.losses)
+(None, ['cbc_loss', 'kc_loss', 'main_loss', 'wavelet_loss'])
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import torch
+
+from kc_splatfacto.engine.optimizers import OptimizersConfig
+from kc_splatfacto.model import ops
+from kc_splatfacto.model.mcmc import MCMCStrategy
+from kc_splatfacto.model.splatfacto import SplatfactoModel
+from kc_splatfacto.model.strategy import DefaultStrategy, NoGaussiansLeftError
+from kc_splatfacto.render.errors import NonFiniteInputError
+
+GRAD_OVERFLOW = 1e18
+"""a gradient this large would overflow Adam's squared-gradient average in float32 (1e36 < 3.4e38 just fits)"""
+
+# a skipped (non-finite) step still advances the schedules, which torch reports as a misuse when no optimizer step
+# came before (a bad first step); it is deliberate here
+_SCHEDULE_BEFORE_OPTIMIZER = "Detected call of `lr_scheduler.step\\(\\)` before `optimizer.step\\(\\)`"
+
+
+def _nothing(*args: Any) -> None:
+    return None
+
+
+@dataclass
+class StepHooks:
+    """What the trainer sees inside a step. ``lap(phase)`` is called at the end of each phase ("render", "losses",
+    "backward", "optimizer", "density_control"); ``inspect_loss(loss_dict, image, loss)`` once between the loss and
+    backward (the trainer's gradient shares; its time is the caller's to leave out)."""
+
+    lap: Callable[[str], None] = _nothing
+    inspect_loss: Callable[[dict[str, torch.Tensor], torch.Tensor, torch.Tensor], None] = _nothing
+
+
+@dataclass
+class StepResult:
+    """One step's outcome.
+
+    Attributes:
+        skipped: why the update was skipped (non-finite render, loss, gradient or parameters), or None.
+        losses: the loss terms, detached (empty when the step was skipped before the loss).
+        outputs: the render without the rasterizer's ``info`` (``rgb`` [H, W, 3], ...), or None.
+        batch: the batch the step rendered, or None.
+        density: the counts of what density control did (default: duplicated, split, pruned, opacity_reset; mcmc:
+            relocated, added); empty on a skipped step.
+    """
+
+    skipped: str | None
+    losses: dict[str, torch.Tensor] = field(default_factory=dict)
+    outputs: dict[str, Any] | None = None
+    batch: dict[str, Any] | None = None
+    density: dict[str, int] = field(default_factory=dict)
+
+
+class TrainingState:
+    """The model, its optimizers and schedules, density control and its state.
+
+    Args:
+        model: the model (its Gaussians live in ``model.gauss_params``, which density control rewrites).
+        optimizers: the optimizer and schedule of each parameter group.
+        strategy: density control with gsplat's ``Strategy`` interface; by default the one the model's config
+            describes (``strategy: default | mcmc``).
+    """
+
+    def __init__(self, model: SplatfactoModel, optimizers: OptimizersConfig,
+                 strategy: DefaultStrategy | MCMCStrategy | None = None):
+        self.model = model
+        self.optimizers_config = optimizers
+        self.strategy = strategy if strategy is not None else model.config.density_strategy(model.num_train_data)
+        if isinstance(self.strategy, MCMCStrategy):
+            self.strategy.check_initial_count(model.num_points)
+            self.strategy_state: dict[str, Any] = self.strategy.initialize_state()
+        else:
+            self.strategy_state = self.strategy.initialize_state(scene_scale=model.scene_scale)
+        self.optimizers: dict[str, torch.optim.Optimizer] = {}
+        self.schedulers: dict[str, Any] = {}
+        self._build_optimizers()
+
+    def _build_optimizers(self) -> None:
+        # nominal schedules (nerfstudio's): steps_scale only, never the run's length, so a short run is the first
+        # steps of the full one
+        self.optimizers, self.schedulers = self.optimizers_config.setup(
+            self.model.parameter_groups(), steps_scale=self.model.config.steps_scale
+        )
+
+    # ----------------------------------------------------------------------------------------------- the step
+    def step(self, step: int, batch: dict[str, Any], hooks: StepHooks | None = None) -> StepResult:
+        """Take training step ``step`` (0-based) on ``batch`` (``camera``, ``image``, ``image_idx``, optionally
+        ``mask``): render, loss, backward, update, density control (module docstring). A step whose render meets
+        non-finite Gaussians removes them and is skipped."""
+        hooks = hooks or StepHooks()
+        model = self.model
+        model.set_step(step)
+        try:
+            outputs = model.get_outputs(batch["camera"], absgrad=self.strategy.absgrad)
+        except NonFiniteInputError:
+            removed = self.remove_non_finite_gaussians()
+            if not removed:  # a non-finite camera, not a parameter: a real error
+                raise
+            return self.skip(f"non-finite parameters: {removed} Gaussians removed")
+        self.strategy.step_pre_backward(model.gauss_params, self.optimizers, self.strategy_state, step,
+                                        outputs["info"])
+        hooks.lap("render")
+        loss_dict = model.get_loss_dict(outputs, batch)
+        hooks.lap("losses")
+        loss = torch.stack(list(loss_dict.values())).sum()
+        hooks.inspect_loss(loss_dict, outputs["rgb"], loss)
+        loss.backward()
+        hooks.lap("backward")
+        problem = self._problem(loss, loss_dict, outputs["rgb"])
+        render = {k: v for k, v in outputs.items() if k != "info"}
+        losses = {k: v.detach() for k, v in loss_dict.items()}
+        if problem is not None:
+            result = self.skip(problem)
+            result.losses, result.outputs, result.batch = losses, render, batch
+            return result
+        for optimizer in self.optimizers.values():
+            optimizer.step()
+            optimizer.zero_grad(set_to_none=True)
+        self._advance_schedules()
+        hooks.lap("optimizer")
+        density = self._density_control(step, outputs["info"])
+        hooks.lap("density_control")
+        return StepResult(skipped=None, losses=losses, outputs=render, batch=batch, density=density)
+
+    def skip(self, reason: str) -> StepResult:
+        """A step without an update: the gradients dropped, the schedules advanced (a skipped step still counts)."""
+        self.model.zero_grad(set_to_none=True)
+        with warnings.catch_warnings():  # only around a skipped step: a filter change re-arms once-only warnings
+            warnings.filterwarnings("ignore", message=_SCHEDULE_BEFORE_OPTIMIZER)
+            self._advance_schedules()
+        return StepResult(skipped=reason)
+
+    def _advance_schedules(self) -> None:
+        for scheduler in self.schedulers.values():
+            scheduler.step()
+
+    def _problem(self, loss: torch.Tensor, loss_dict: dict[str, torch.Tensor], rgb: torch.Tensor) -> str | None:
+        """Why the step just back-propagated must be skipped, or None. One host synchronisation on a good step (one
+        flag reduced on the device); the reason is worked out only for a bad one."""
+        names, peaks = self.model.gradient_peaks()
+        good = (torch.isfinite(rgb).all() & torch.isfinite(loss) & torch.isfinite(peaks).all()
+                & (peaks.max() < GRAD_OVERFLOW))  # a non-finite render is skipped even where its loss is finite
+        if bool(good):
+            return None
+        if not bool(torch.isfinite(rgb).all()):
+            return "non-finite render"
+        if not bool(torch.isfinite(loss)):
+            terms = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in loss_dict.items())
+            return f"non-finite loss ({terms})"
+        bad = [k for k, v in zip(names, peaks.tolist()) if not (math.isfinite(v) and v < GRAD_OVERFLOW)]
+        return f"non-finite or overflowing gradient of {bad}"
+
+    def _density_control(self, step: int, info: dict[str, Any]) -> dict[str, int]:
+        """Statistics from this step's render (after its backward), then grow / prune / reset on the schedule (mcmc:
+        relocate / add, and noise scaled by the means' learning rate after this step's schedule update)."""
+        params = self.model.gauss_params
+        if isinstance(self.strategy, MCMCStrategy):
+            means_lr = self.optimizers["means"].param_groups[0]["lr"]
+            return self.strategy.step_post_backward(params, self.optimizers, self.strategy_state, step, info,
+                                                    lr=means_lr)
+        return self.strategy.step_post_backward(params, self.optimizers, self.strategy_state, step, info)
+
+    # ----------------------------------------------------------------------------------------------- repairs, caps
+    @torch.no_grad()
+    def remove_non_finite_gaussians(self) -> int:
+        """Remove every Gaussian with a non-finite parameter (with its optimizer state and density-control
+        statistics); returns how many were removed. Raises NoGaussiansLeftError when none would be left."""
+        params = self.model.gauss_params
+        if all(bool(torch.isfinite(p).all()) for p in params.values()):
+            return 0
+        bad_rows = torch.zeros(len(params["means"]), dtype=torch.bool, device=params["means"].device)
+        for p in params.values():
+            bad_rows |= ~torch.isfinite(p.reshape(len(p), -1)).all(dim=-1)
+        ops.remove(params, self.optimizers, self.strategy_state, bad_rows)
+        if len(params["means"]) == 0:
+            raise NoGaussiansLeftError("every Gaussian had non-finite parameters and was removed: nothing left to train")
+        return int(bad_rows.sum())
+
+    def cap_gaussians(self, count: int) -> None:
+        """Density control adds no Gaussians past ``count`` from now on (a memory budget reached): the strategy's
+        cap lowered (``max_gaussians``; an MCMC strategy's ``cap_max``), never raised."""
+        for name in ("max_gaussians", "cap_max"):
+            if hasattr(self.strategy, name):
+                current = getattr(self.strategy, name)
+                setattr(self.strategy, name, count if current is None else min(int(current), int(count)))
+
+    # ----------------------------------------------------------------------------------------------- checkpoints
+    def state_dict(self) -> dict[str, Any]:
+        """The density-control statistics (``strategy_state``) and the optimizers' and schedules' states; the
+        Gaussians are the model's (the pipeline's ``state_dict``)."""
+        return {
+            "strategy_state": dict(self.strategy_state),
+            "optimizers": {k: opt.state_dict() for k, opt in self.optimizers.items()},
+            "schedulers": {k: s.state_dict() for k, s in self.schedulers.items()},
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict`'s content after the model's Gaussians were loaded (the optimizers are built
+        again on the loaded parameters, whose count may differ from the initial one)."""
+        device = self.model.device
+        if "strategy_state" in state:
+            self.strategy_state = {
+                k: (v.to(device) if isinstance(v, torch.Tensor) else v) for k, v in state["strategy_state"].items()
+            }
+        self._build_optimizers()
+        for name, opt_state in state.get("optimizers", {}).items():
+            self.optimizers[name].load_state_dict(opt_state)
+        for name, sched_state in state.get("schedulers", {}).items():
+            self.schedulers[name].load_state_dict(sched_state)
