@@ -67,15 +67,21 @@ def _peak_rss_bytes() -> int:
     return int(peak if sys.platform == "darwin" else peak * 1024)  # bytes on macOS, kilobytes on Linux
 
 
-def peak_rss_since_reset() -> int:
-    """The resident peak since :func:`reset_peak_rss` (Linux: VmHWM; elsewhere the process's peak)."""
+def _proc_bytes(path: str, key: str) -> int | None:
+    """The ``key: <n> kB`` line of a /proc file in bytes, or None where the file or the line is missing."""
     try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
+        for line in Path(path).read_text().splitlines():
+            if line.startswith(f"{key}:"):
                 return int(line.split()[1]) * 1024
     except (OSError, ValueError, IndexError):
         pass
-    return _peak_rss_bytes()
+    return None
+
+
+def peak_rss_since_reset() -> int:
+    """The resident peak since :func:`reset_peak_rss` (Linux: VmHWM; elsewhere the process's peak)."""
+    peak = _proc_bytes("/proc/self/status", "VmHWM")
+    return peak if peak is not None else _peak_rss_bytes()
 
 
 def reset_peak_rss() -> None:
@@ -88,13 +94,7 @@ def reset_peak_rss() -> None:
 
 
 def _meminfo_available() -> int | None:
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return None
+    return _proc_bytes("/proc/meminfo", "MemAvailable")
 
 
 def _cgroup_room() -> int | None:
