@@ -8,26 +8,16 @@ state rewritten). Prints a table with gsplat's time over ours; ``--threads`` set
     python benchmarks/bench_strategy.py --sizes 50000 200000 1000000 --repeats 15
 """
 
-from __future__ import annotations
+import kc_splatfacto  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads)
 
-import argparse
-import os
-import sys
-
-if __name__ == "__main__":  # the thread count must be in the environment before torch and numba load
-    _threads = argparse.ArgumentParser(add_help=False)
-    _threads.add_argument("--threads", type=int, default=None)
-    _known, _ = _threads.parse_known_args()
-    if _known.threads:
-        os.environ["OMP_NUM_THREADS"] = os.environ["NUMBA_NUM_THREADS"] = str(_known.threads)
-
-import kc_splatfacto  # noqa: E402,F401  (sets OMP_WAIT_POLICY before torch loads)
-
+import argparse  # noqa: E402
 import statistics  # noqa: E402
+import sys  # noqa: E402
 import time  # noqa: E402
 
 import torch  # noqa: E402
 
+from kc_splatfacto.cli.bench import set_threads  # noqa: E402
 from kc_splatfacto.model.strategy import DefaultStrategy  # noqa: E402
 
 WIDTH, HEIGHT = 768, 512
@@ -79,6 +69,8 @@ def main() -> int:
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--threads", type=int, default=None)
     args = parser.parse_args()
+    if args.threads:
+        set_threads(args.threads)
     from gsplat.strategy import DefaultStrategy as GsplatDefaultStrategy
 
     ours = DefaultStrategy(**FIELDS)
