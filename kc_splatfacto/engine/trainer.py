@@ -434,7 +434,7 @@ class Trainer:
         (read from the device only when asked; empty for a skipped step)."""
         self._lap_start = time.perf_counter()
         result = self._take_step(step)
-        if result.skipped is None and any(result.density.values()):
+        if any(result.density.values()):  # empty on a skipped step
             self.writer.write({"kind": "densify", "step": step + 1, "elapsed_s": self._elapsed(),
                                "train_s": self._train_s, "gaussian_count": self.model.num_points, **result.density})
             self._check_memory(step + 1)
@@ -511,15 +511,13 @@ class Trainer:
         """Between a step's loss and its backward (:class:`StepHooks`): the share of each loss term in the image's
         gradient, every ``steps_per_gradient_shares`` steps; its time is left out of the step's."""
         every = self.config.logging.steps_per_gradient_shares
-        if every <= 0 or step % every != 0 or not bool(torch.isfinite(loss)):  # a bad step has no shares to log
-            self._lap_start = time.perf_counter()
-            return
-        start, start_cpu = time.perf_counter(), time.process_time()
-        record = {"kind": "gradient_shares", "step": step, "elapsed_s": self._elapsed(), "train_s": self._train_s,
-                  "reference": "main_loss", **gradient_shares(loss_dict, image)}
-        self.writer.write(record)
-        self._side_s += time.perf_counter() - start
-        self._side_cpu_s += time.process_time() - start_cpu
+        if every > 0 and step % every == 0 and bool(torch.isfinite(loss)):  # a bad step has no shares to log
+            start, start_cpu = time.perf_counter(), time.process_time()
+            record = {"kind": "gradient_shares", "step": step, "elapsed_s": self._elapsed(),
+                      "train_s": self._train_s, "reference": "main_loss", **gradient_shares(loss_dict, image)}
+            self.writer.write(record)
+            self._side_s += time.perf_counter() - start
+            self._side_cpu_s += time.process_time() - start_cpu
         self._lap_start = time.perf_counter()  # the shares are logging, not a phase of the step
 
     def _log_train(self, step: int, losses: Mapping[str, float]) -> None:

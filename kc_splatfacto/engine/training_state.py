@@ -74,9 +74,9 @@ class StepResult:
 
     Attributes:
         skipped: why the update was skipped (non-finite render, loss, gradient or parameters), or None.
-        losses: the loss terms, detached (empty when the step was skipped before the loss).
-        outputs: the render without the rasterizer's ``info`` (``rgb`` [H, W, 3], ...), or None.
-        batch: the batch the step rendered, or None.
+        losses: the loss terms, detached (empty on a skipped step).
+        outputs: the render without the rasterizer's ``info`` (``rgb`` [H, W, 3], ...); None on a skipped step.
+        batch: the batch the step rendered; None on a skipped step.
         density: the counts of what density control did (default: duplicated, split, pruned, opacity_reset; mcmc:
             relocated, added); empty on a skipped step.
     """
@@ -144,12 +144,8 @@ class TrainingState:
         loss.backward()
         hooks.lap("backward")
         problem = self._problem(loss, loss_dict, outputs["rgb"])
-        render = {k: v for k, v in outputs.items() if k != "info"}
-        losses = {k: v.detach() for k, v in loss_dict.items()}
         if problem is not None:
-            result = self.skip(problem)
-            result.losses, result.outputs, result.batch = losses, render, batch
-            return result
+            return self.skip(problem)
         for optimizer in self.optimizers.values():
             optimizer.step()
             optimizer.zero_grad(set_to_none=True)
@@ -157,6 +153,8 @@ class TrainingState:
         hooks.lap("optimizer")
         density = self._density_control(step, outputs["info"])
         hooks.lap("density_control")
+        render = {k: v for k, v in outputs.items() if k != "info"}
+        losses = {k: v.detach() for k, v in loss_dict.items()}
         return StepResult(skipped=None, losses=losses, outputs=render, batch=batch, density=density)
 
     def skip(self, reason: str) -> StepResult:
