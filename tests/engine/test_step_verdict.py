@@ -9,8 +9,11 @@ from __future__ import annotations
 import pytest
 import torch
 
+from kc_splatfacto.engine.metrics_log import read_metrics
+from kc_splatfacto.engine.trainer import Trainer
 from kc_splatfacto.engine.training_state import TrainingState
 from tests.engine.test_training_state import make_pipeline
+from tests.training_utils import tiny_demo_config
 
 STEPS = 40
 BAD_STEP = 15  # an odd step: no refinement at the tiny config's compressed schedule (every 2 steps from step 10)
@@ -123,3 +126,33 @@ def test_the_host_takes_the_verdict_where_the_device_cannot(tmp_path, why):
         kinds = "".join("H" if state.step(s, pipeline.datamanager.next_train()).verdict is None else "D"
                         for s in range(4))
     assert "D" not in kinds
+
+
+@pytest.mark.parametrize("device", [
+    "cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA"))])
+def test_the_trainer_skips_a_bad_update_on_the_device_and_reports_it_at_the_next_log(tmp_path, device):
+    config = tiny_demo_config("splatfacto", tmp_path, iterations=12, steps_scale=1.0)  # no refinement in 12 steps
+    config.machine.device = device
+    if device == "cpu":
+        config.machine.step_verdict = "device"  # CUDA's default ('auto')
+    trainer = Trainer(config)
+    trainer.setup()
+    assert trainer.state.device_verdict
+    poison_loss_at(trainer.model, 5)
+    snapshots, waiting = {}, {}
+    original = trainer.train_iteration
+
+    def recording(step):
+        snapshots[step] = {k: v.clone() for k, v in trainer.model.gaussian_state().items()}
+        waiting[step] = len(trainer._unread_verdicts)
+        return original(step)
+
+    trainer.train_iteration = recording
+    with pytest.warns(RuntimeWarning, match="step 6: non-finite loss"):
+        trainer.train()
+    for name, value in snapshots[5].items():
+        assert torch.equal(value, snapshots[6][name]), name  # the bad step changed nothing
+    assert not torch.equal(snapshots[6]["means"], snapshots[7]["means"])  # the next one updates
+    assert waiting[6] == 6 and waiting[10] == 0  # read at the log after step 10, not before
+    bad = [r for r in read_metrics(trainer.run_dir / "metrics.jsonl") if r["kind"] == "bad_step"]
+    assert [r["step"] for r in bad] == [6] and bad[0]["reason"].startswith("non-finite loss")
