@@ -12,8 +12,7 @@ import torch
 from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.trainer import Trainer
 from kc_splatfacto.engine.training_state import TrainingState
-from tests.engine.test_training_state import make_pipeline
-from tests.training_utils import tiny_demo_config
+from tests.training_utils import demo_pipeline, tiny_demo_config
 
 STEPS = 40
 BAD_STEP = 15  # an odd step: no refinement at the tiny config's compressed schedule (every 2 steps from step 10)
@@ -35,7 +34,7 @@ def poison_loss_at(model, step: int) -> None:
 def train(tmp_path, method: str, device_verdict: bool, bad_step: int | None = None, fused: bool = True):
     """STEPS steps of a fresh state; returns (pipeline, state, one letter per step: D device verdict, H host, S host
     skipped, and the Gaussians after each step)."""
-    pipeline, config = make_pipeline(tmp_path, method, seed=0)
+    pipeline, config = demo_pipeline(tmp_path, method, seed=0)
     if not fused:
         for name in config.optimizers.group_names():
             getattr(config.optimizers, name).optimizer.fused = False
@@ -71,7 +70,7 @@ def test_good_steps_are_the_host_verdict_s_bit_for_bit(tmp_path, method):
     assert kinds.count("D") >= STEPS // 2 and "H" in kinds, kinds
     refining = [step for step in range(STEPS) if device.strategy.refines_at(step)]
     assert [step for step, kind in enumerate(kinds) if kind == "H"] == refining
-    assert device.model.num_points != make_pipeline(tmp_path / "seed", method, seed=0)[0].model.num_points
+    assert device.model.num_points != demo_pipeline(tmp_path / "seed", method, seed=0)[0].model.num_points
     assert_same_states(host, device)
 
 
@@ -96,7 +95,7 @@ def test_a_bad_step_on_the_device_leaves_mcmc_s_gaussians_as_they_were(tmp_path)
 
 
 def test_the_verdict_read_later_says_what_the_host_says(tmp_path):
-    pipeline, config = make_pipeline(tmp_path, "splatfacto", seed=0)
+    pipeline, config = demo_pipeline(tmp_path, "splatfacto", seed=0)
     state = TrainingState(pipeline.model, config.optimizers, device_verdict=True)
     poison_loss_at(pipeline.model, 1)
     good = state.step(0, pipeline.datamanager.next_train())
@@ -111,7 +110,7 @@ def test_the_host_takes_the_verdict_where_the_device_cannot(tmp_path, why):
     if why == "unfused Adam":  # torch's per-tensor Adam has no found_inf
         _, _, kinds, _ = train(tmp_path, "splatfacto", device_verdict=True, fused=False)
     else:
-        pipeline, config = make_pipeline(tmp_path, "splatfacto", seed=0)
+        pipeline, config = demo_pipeline(tmp_path, "splatfacto", seed=0)
         strategy = config.pipeline.model.density_strategy(pipeline.model.num_train_data)
 
         class Opaque:  # gsplat's Strategy interface only
