@@ -76,12 +76,15 @@ class StepHooks:
 @dataclass
 class StepVerdict:
     """Whether a step was good, as device tensors: ``good`` (bool), and what :meth:`reason` reads to say why not (the
-    render's finiteness, the loss and its terms, the parameter groups' largest gradient magnitudes)."""
+    render's and the loss's finiteness, the loss terms stacked in ``term_names``' order, the parameter groups' largest
+    gradient magnitudes). Every tensor is the step's own: a term may be a CUDA graph's output buffer, which the next
+    step's replay overwrites, so the terms are kept as the stack the step's sum was taken of."""
 
     good: torch.Tensor
     render_finite: torch.Tensor
-    loss: torch.Tensor
-    losses: dict[str, torch.Tensor]
+    loss_finite: torch.Tensor
+    terms: torch.Tensor
+    term_names: list[str]
     groups: list[str]
     peaks: torch.Tensor
 
@@ -91,8 +94,8 @@ class StepVerdict:
             return None
         if not bool(self.render_finite):
             return "non-finite render"
-        if not bool(torch.isfinite(self.loss)):
-            terms = ", ".join(f"{k}={float(v):.4g}" for k, v in self.losses.items())
+        if not bool(self.loss_finite):
+            terms = ", ".join(f"{k}={v:.4g}" for k, v in zip(self.term_names, self.terms.tolist()))
             return f"non-finite loss ({terms})"
         bad = [k for k, v in zip(self.groups, self.peaks.tolist()) if not (math.isfinite(v) and v < GRAD_OVERFLOW)]
         return f"non-finite or overflowing gradient of {bad}"
@@ -175,11 +178,12 @@ class TrainingState:
         hooks.lap("render")
         loss_dict = model.get_loss_dict(outputs, batch)
         hooks.lap("losses")
-        loss = torch.stack(list(loss_dict.values())).sum()
+        terms = torch.stack(list(loss_dict.values()))
+        loss = terms.sum()
         hooks.inspect_loss(loss_dict, outputs["rgb"], loss)
         loss.backward()
         hooks.lap("backward")
-        verdict = self._verdict(loss, loss_dict, outputs["rgb"])
+        verdict = self._verdict(loss, terms.detach(), list(loss_dict), outputs["rgb"])
         on_device = self._verdict_on_device_at(step)
         if not on_device:
             problem = verdict.reason()  # the host waits for the step here
@@ -210,14 +214,14 @@ class TrainingState:
         for scheduler in self.schedulers.values():
             scheduler.step()
 
-    def _verdict(self, loss: torch.Tensor, loss_dict: dict[str, torch.Tensor], rgb: torch.Tensor) -> StepVerdict:
+    def _verdict(self, loss: torch.Tensor, terms: torch.Tensor, term_names: list[str], rgb: torch.Tensor) -> StepVerdict:
         """The step's verdict as device tensors, unread (one flag reduced on the device)."""
         names, peaks = self.model.gradient_peaks()
         render_finite = torch.isfinite(rgb).all()
-        good = (render_finite & torch.isfinite(loss) & torch.isfinite(peaks).all()
+        loss_finite = torch.isfinite(loss)
+        good = (render_finite & loss_finite & torch.isfinite(peaks).all()
                 & (peaks.max() < GRAD_OVERFLOW))  # a non-finite render is skipped even where its loss is finite
-        losses = {k: v.detach() for k, v in loss_dict.items()}
-        return StepVerdict(good, render_finite, loss.detach(), losses, names, peaks)
+        return StepVerdict(good, render_finite, loss_finite, terms, term_names, names, peaks)
 
     def _verdict_on_device_at(self, step: int) -> bool:
         """Whether step ``step`` takes its verdict on the device: asked for, fused Adam everywhere (its found_inf
