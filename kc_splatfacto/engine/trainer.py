@@ -447,7 +447,7 @@ class Trainer:
         checkpoint or a stop, or when ``VERDICTS_READ_EVERY`` wait."""
         cfg = self.config
         return (taken % cfg.logging.steps_per_log == 0 or self._should_eval(taken) or taken % cfg.steps_per_save == 0
-                or taken >= cfg.max_num_iterations or self._stop_requested
+                or taken == cfg.max_num_iterations or self._stop_requested
                 or len(self._unread_verdicts) >= VERDICTS_READ_EVERY)
 
     def _read_verdicts(self, taken: int) -> bool:
