@@ -595,6 +595,8 @@ GPU_TESTS = ("tests/render/test_gsplat_cuda.py", "tests/losses/test_wavelets.py:
              "tests/losses/test_photometric.py::test_stacked_dssim_on_cuda_equals_kornia",
              "tests/model/test_image_loss.py::test_cuda_graph_replay_equals_the_eager_loss_on_a_gpu",
              "tests/model/test_mcmc.py::test_relocation_on_cuda_is_gsplats_kernel_and_agrees_with_the_torch_formula",
+             "tests/engine/test_step_verdict.py::"
+             "test_the_trainer_skips_a_bad_update_on_the_device_and_reports_it_at_the_next_log[cuda]",
              "tests/nerfstudio_plugin/test_cuda.py")  # last: it needs the nerfstudio wheels and is the slowest
 
 

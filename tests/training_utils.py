@@ -40,6 +40,19 @@ def tiny_demo_config(method: str, output_dir: Path, iterations: int = 60, steps_
     return config
 
 
+def demo_pipeline(tmp_path: Path, method: str = "kc-splatfacto", seed: int = 0, **model_overrides):
+    """``method``'s pipeline on the tiny demo scene (:func:`tiny_demo_config`), seeded, in training mode, the demo
+    images cached beside ``tmp_path`` (shared by a test's sub-folders). Returns (pipeline, config)."""
+    import torch
+
+    config = tiny_demo_config(method, tmp_path, **model_overrides)
+    config.pipeline.datamanager.dataparser.demo_cache_dir = Path(tmp_path).parent / "demo-cache"
+    torch.manual_seed(seed)
+    pipeline = config.pipeline.setup(seed=seed, dataparser=config.pipeline.datamanager.resolve_dataparser())
+    pipeline.model.train()
+    return pipeline, config
+
+
 def interrupt_cli_training(tmp_path: Path, signum: int, timestamp: str, env: dict) -> tuple[subprocess.CompletedProcess, Path]:
     """Start ``kc-train splatfacto --data demo`` (a budget it never reaches) in ``tmp_path``, send ``signum`` once
     it has logged a training record, and wait for it to exit. Returns (the finished process, the run folder)."""

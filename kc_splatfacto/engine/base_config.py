@@ -13,6 +13,7 @@ from __future__ import annotations
 import random
 import re
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import torch
@@ -49,6 +50,10 @@ class MachineConfig:
     memory_budget_gb: float = setting(0.0, real(0.0))
     """memory (GB; RAM, or the GPU's on CUDA) past which density control adds no Gaussians, so that a run stops
     growing instead of being killed; 0: 85% of what the process may use when the run starts (engine/memory.py)"""
+    step_verdict: Literal["auto", "host", "device"] = "auto"
+    """where a step's verdict (is the render, loss and gradient finite?) is taken: 'host' reads it before the update
+    (one synchronisation per step; a bad step is reported at once), 'device' skips a bad update on the device (Adam's
+    found_inf) and reports it at the next log, evaluation or checkpoint; 'auto': device on CUDA, host on the CPU"""
 
     def resolve_device(self) -> torch.device:
         if self.device == "auto":

@@ -167,6 +167,7 @@ RESUMABLE_FIELDS = (
     "method_name", "experiment_name", "output_dir", "timestamp", "max_num_iterations", "steps_per_save",
     "steps_per_eval_all_images", "eval_at_steps", "final_lpips_nets", "eval_lpips_nets", "save_only_latest_checkpoint", "load_dir",
     "load_step", "resume_from_other_run", "max_consecutive_bad_steps", "machine.device", "machine.memory_budget_gb",
+    "machine.step_verdict",
     "logging",
     "pipeline.datamanager.dataparser", "pipeline.datamanager.eval_split",
     "pipeline.model.rasterizer",

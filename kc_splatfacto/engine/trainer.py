@@ -48,13 +48,16 @@ from kc_splatfacto.engine.run_guard import (
     recorded_dataparser,
 )
 from kc_splatfacto.engine.signals import install_stop_handlers, restore_handlers
-from kc_splatfacto.engine.training_state import StepHooks, StepResult, TrainingState
+from kc_splatfacto.engine.training_state import StepHooks, StepResult, StepVerdict, TrainingState
 from kc_splatfacto.engine.validation import validate_config
 from kc_splatfacto.lpips import NETWORKS
 from kc_splatfacto.settings import drawn_from, each, integer, path_component, setting
 
 PARAMETER_SCAN_EVERY = 100
 """steps between full scans of the parameters for NaN/inf (the rasterizer reports what it reads every step)"""
+VERDICTS_READ_EVERY = 100
+"""most steps whose device verdicts wait unread (``machine.step_verdict``; also read at each log, evaluation and
+checkpoint)"""
 PHASES = ("render", "losses", "backward", "optimizer", "density_control")
 
 
@@ -202,6 +205,7 @@ class Trainer:
         self._side_s = 0.0  # logging work inside a step (gradient shares), kept out of train_s
         self._side_cpu_s = 0.0
         self._bad_in_a_row = 0
+        self._unread_verdicts: list[tuple[int, StepVerdict]] = []  # (step, its device verdict) not yet read
         self._memory: MemoryGuard | None = None  # the run's memory budget (setup)
         self._t0 = self._lap_start = time.perf_counter()  # both restarted when train() begins
         self.callbacks: list[TrainingCallback] = []
@@ -277,7 +281,7 @@ class Trainer:
         check_training_image_sizes(self.datamanager, cfg.pipeline.model)
         announce_seed_points(self.datamanager, cfg.pipeline.model)
         self.model.train()
-        self._state = TrainingState(self.model, cfg.optimizers)
+        self._state = TrainingState(self.model, cfg.optimizers, device_verdict=self._device_verdict())
         checkpoint = plan.checkpoint
         self._run_dir = plan.run_dir or self._new_run_dir()
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -339,6 +343,7 @@ class Trainer:
         }
 
     def save_checkpoint(self, step: int) -> Path:
+        self._read_verdicts(step)  # a bad step waiting unread is recorded before the state it left is saved
         path = save_checkpoint(
             self.run_dir / CHECKPOINT_DIR, step, self._checkpoint_payload(step), self.config.save_only_latest_checkpoint
         )
@@ -403,13 +408,21 @@ class Trainer:
         return step in self.config.eval_at_steps or (every > 0 and step % every == 0) or step == self.config.max_num_iterations
 
     # ----------------------------------------------------------------------------------------------- one step
-    def _bad_step(self, step: int, reason: str) -> None:
+    def _device_verdict(self) -> bool:
+        """``machine.step_verdict`` resolved: 'auto' takes it on the device on CUDA, where the host would wait for the
+        step; on the CPU the wait costs nothing and a bad step is reported at once."""
+        choice = self.config.machine.step_verdict
+        return choice == "device" or (choice == "auto" and self.device.type == "cuda")
+
+    def _bad_step(self, step: int, reason: str, now: int | None = None) -> None:
+        """Record bad step ``step``; ``now``: the steps taken so far (later than ``step`` for a device verdict read
+        late), the state a divergence saves."""
         self._bad_in_a_row += 1
         self.writer.write({"kind": "bad_step", "step": step, "elapsed_s": self._elapsed(), "train_s": self._train_s,
                            "reason": reason, "consecutive": self._bad_in_a_row})
         warnings.warn(f"step {step}: {reason}; step skipped", RuntimeWarning, stacklevel=2)
         if self._bad_in_a_row >= self.config.max_consecutive_bad_steps:
-            path = self.save_checkpoint(step)  # bad updates were never applied: this is the last good state
+            path = self.save_checkpoint(step if now is None else now)  # bad updates were never applied
             raise TrainingDivergedError(
                 f"{self._bad_in_a_row} consecutive bad steps (last: {reason}) at step {step}: training stopped. "
                 f"The last good state is saved in {path}. Lower the loss weights or the learning rates "
@@ -429,9 +442,33 @@ class Trainer:
         hooks = StepHooks(lap=self._lap, inspect_loss=functools.partial(self._log_gradient_shares, step + 1))
         return self.state.step(step, self.datamanager.next_train(), hooks)
 
+    def _verdicts_due(self, taken: int) -> bool:
+        """Whether the device verdicts waiting must be read after ``taken`` steps: before a log, an evaluation, a
+        checkpoint or a stop, or when ``VERDICTS_READ_EVERY`` wait."""
+        cfg = self.config
+        return (taken % cfg.logging.steps_per_log == 0 or self._should_eval(taken) or taken % cfg.steps_per_save == 0
+                or taken == cfg.max_num_iterations or self._stop_requested
+                or len(self._unread_verdicts) >= VERDICTS_READ_EVERY)
+
+    def _read_verdicts(self, taken: int) -> bool:
+        """Read the device verdicts waiting (one synchronisation), in step order: a bad one is recorded as the host
+        verdict records it (its update was never applied), a good one ends a run of bad steps. Returns whether the
+        last one read was good (True when none waited)."""
+        waiting, self._unread_verdicts = self._unread_verdicts, []
+        good = True
+        for step, verdict in waiting:
+            reason = verdict.reason()
+            good = reason is None
+            if reason is None:
+                self._bad_in_a_row = 0
+            else:
+                self._bad_step(step, reason, now=taken)
+        return good
+
     def train_iteration(self, step: int) -> Mapping[str, float]:
         """Take optimization step ``step`` (0-based). Returns the loss terms and ``loss`` as a :class:`StepLosses`
-        (read from the device only when asked; empty for a skipped step)."""
+        (read from the device only when asked; empty for a skipped step, and for a bad one whose device verdict is
+        read at once)."""
         self._lap_start = time.perf_counter()
         result = self._take_step(step)
         if any(result.density.values()):  # empty on a skipped step
@@ -439,6 +476,13 @@ class Trainer:
                                "train_s": self._train_s, "gaussian_count": self.model.num_points, **result.density})
             self._check_memory(step + 1)
         self.phase_steps += 1
+        if result.verdict is not None:  # taken on the device, read later
+            self._unread_verdicts.append((step + 1, result.verdict))
+            if self._verdicts_due(step + 1) and not self._read_verdicts(step + 1):
+                return {}
+            self._last_outputs, self._last_batch = result.outputs, result.batch
+            return StepLosses(result.losses)
+        self._read_verdicts(step + 1)  # the host took this one: those before it come first
         if result.skipped is not None:
             self._bad_step(step + 1, result.skipped)
             return {}

@@ -8,12 +8,17 @@ strategy's state. :meth:`TrainingState.step` takes one step on one batch:
 
 1. the model set to the step, the batch's camera rendered, the strategy's pre-backward hook on the render's ``info``;
 2. the loss terms (``model.get_loss_dict``), their sum, backward;
-3. the verdict, one host synchronisation: a non-finite render, loss or gradient, or a gradient that would overflow
-   Adam, skips the update;
+3. the verdict: a non-finite render, loss or gradient, or a gradient that would overflow Adam, skips the update;
 4. the optimizers step and the schedules advance, before density control: MCMC's noise reads the means' rate of the
    next step, as gsplat's ``simple_trainer`` and nerfstudio pass it;
 5. density control on the render's ``info``, with the optimizers, whose state it rewrites when it adds, splits,
    relocates or removes Gaussians.
+
+The verdict is taken on the host (one synchronisation: the update waits for it) or, with ``device_verdict``, on the
+device: the flag goes to fused Adam as its ``found_inf`` (the update and Adam's step count left as they were on a bad
+step, as under a gradient scaler), the render is made invisible to density control (radii 0, MCMC's noise scaled by
+0), and the :class:`StepVerdict` comes back unread. A step on which density control grows, prunes, relocates or resets
+still takes the host verdict: that work reads the host anyway. On a good step both ways are the same arithmetic.
 
 The render's ``info`` stays inside the step. The trainer keeps the loop, the clocks, checkpoints, evaluation and
 logging: it times the phases and looks at the loss terms before backward through :class:`StepHooks`.
@@ -69,6 +74,34 @@ class StepHooks:
 
 
 @dataclass
+class StepVerdict:
+    """Whether a step was good, as device tensors: ``good`` (bool), and what :meth:`reason` reads to say why not (the
+    render's and the loss's finiteness, the loss terms stacked in ``term_names``' order, the parameter groups' largest
+    gradient magnitudes). Every tensor is the step's own: a term may be a CUDA graph's output buffer, which the next
+    step's replay overwrites, so the terms are kept as the stack the step's sum was taken of."""
+
+    good: torch.Tensor
+    render_finite: torch.Tensor
+    loss_finite: torch.Tensor
+    terms: torch.Tensor
+    term_names: list[str]
+    groups: list[str]
+    peaks: torch.Tensor
+
+    def reason(self) -> str | None:
+        """Why the step was skipped, or None for a good step (reads the device: one synchronisation when good)."""
+        if bool(self.good):
+            return None
+        if not bool(self.render_finite):
+            return "non-finite render"
+        if not bool(self.loss_finite):
+            terms = ", ".join(f"{k}={v:.4g}" for k, v in zip(self.term_names, self.terms.tolist()))
+            return f"non-finite loss ({terms})"
+        bad = [k for k, v in zip(self.groups, self.peaks.tolist()) if not (math.isfinite(v) and v < GRAD_OVERFLOW)]
+        return f"non-finite or overflowing gradient of {bad}"
+
+
+@dataclass
 class StepResult:
     """One step's outcome.
 
@@ -79,6 +112,8 @@ class StepResult:
         batch: the batch the step rendered; None on a skipped step.
         density: the counts of what density control did (default: duplicated, split, pruned, opacity_reset; mcmc:
             relocated, added); empty on a skipped step.
+        verdict: a device verdict not yet read (its step's update was applied only if it is good); None when the
+            host took the verdict (then ``skipped`` says it).
     """
 
     skipped: str | None
@@ -86,6 +121,7 @@ class StepResult:
     outputs: dict[str, Any] | None = None
     batch: dict[str, Any] | None = None
     density: dict[str, int] = field(default_factory=dict)
+    verdict: StepVerdict | None = None
 
 
 class TrainingState:
@@ -96,12 +132,15 @@ class TrainingState:
         optimizers: the optimizer and schedule of each parameter group.
         strategy: density control with gsplat's ``Strategy`` interface; by default the one the model's config
             describes (``strategy: default | mcmc``).
+        device_verdict: take the verdict of a step without refinement on the device (module docstring); it needs
+            fused Adam and a strategy that says on which steps it refines (``refines_at``), else the host takes it.
     """
 
     def __init__(self, model: SplatfactoModel, optimizers: OptimizersConfig,
-                 strategy: DefaultStrategy | MCMCStrategy | None = None):
+                 strategy: DefaultStrategy | MCMCStrategy | None = None, device_verdict: bool = False):
         self.model = model
         self.optimizers_config = optimizers
+        self.device_verdict = device_verdict
         self.strategy = strategy if strategy is not None else model.config.density_strategy(model.num_train_data)
         if isinstance(self.strategy, MCMCStrategy):
             self.strategy.check_initial_count(model.num_points)
@@ -139,23 +178,29 @@ class TrainingState:
         hooks.lap("render")
         loss_dict = model.get_loss_dict(outputs, batch)
         hooks.lap("losses")
-        loss = torch.stack(list(loss_dict.values())).sum()
+        terms = torch.stack(list(loss_dict.values()))
+        loss = terms.sum()
         hooks.inspect_loss(loss_dict, outputs["rgb"], loss)
         loss.backward()
         hooks.lap("backward")
-        problem = self._problem(loss, loss_dict, outputs["rgb"])
-        if problem is not None:
-            return self.skip(problem)
+        verdict = self._verdict(loss, terms.detach(), list(loss_dict), outputs["rgb"])
+        on_device = self._verdict_on_device_at(step)
+        if not on_device:
+            problem = verdict.reason()  # the host waits for the step here
+            if problem is not None:
+                return self.skip(problem)
+        found_inf = (~verdict.good).to(torch.float32) if on_device else None
         for optimizer in self.optimizers.values():
-            optimizer.step()
+            self._optimizer_step(optimizer, found_inf)
             optimizer.zero_grad(set_to_none=True)
         self._advance_schedules()
         hooks.lap("optimizer")
-        density = self._density_control(step, outputs["info"])
+        density = self._density_control(step, outputs["info"], verdict.good if on_device else None)
         hooks.lap("density_control")
         render = {k: v for k, v in outputs.items() if k != "info"}
         losses = {k: v.detach() for k, v in loss_dict.items()}
-        return StepResult(skipped=None, losses=losses, outputs=render, batch=batch, density=density)
+        return StepResult(skipped=None, losses=losses, outputs=render, batch=batch, density=density,
+                          verdict=verdict if on_device else None)
 
     def skip(self, reason: str) -> StepResult:
         """A step without an update: the gradients dropped, the schedules advanced (a skipped step still counts)."""
@@ -169,30 +214,51 @@ class TrainingState:
         for scheduler in self.schedulers.values():
             scheduler.step()
 
-    def _problem(self, loss: torch.Tensor, loss_dict: dict[str, torch.Tensor], rgb: torch.Tensor) -> str | None:
-        """Why the step just back-propagated must be skipped, or None. One host synchronisation on a good step (one
-        flag reduced on the device); the reason is worked out only for a bad one."""
+    def _verdict(self, loss: torch.Tensor, terms: torch.Tensor, term_names: list[str], rgb: torch.Tensor) -> StepVerdict:
+        """The step's verdict as device tensors, unread (one flag reduced on the device)."""
         names, peaks = self.model.gradient_peaks()
-        good = (torch.isfinite(rgb).all() & torch.isfinite(loss) & torch.isfinite(peaks).all()
+        render_finite = torch.isfinite(rgb).all()
+        loss_finite = torch.isfinite(loss)
+        good = (render_finite & loss_finite & torch.isfinite(peaks).all()
                 & (peaks.max() < GRAD_OVERFLOW))  # a non-finite render is skipped even where its loss is finite
-        if bool(good):
-            return None
-        if not bool(torch.isfinite(rgb).all()):
-            return "non-finite render"
-        if not bool(torch.isfinite(loss)):
-            terms = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in loss_dict.items())
-            return f"non-finite loss ({terms})"
-        bad = [k for k, v in zip(names, peaks.tolist()) if not (math.isfinite(v) and v < GRAD_OVERFLOW)]
-        return f"non-finite or overflowing gradient of {bad}"
+        return StepVerdict(good, render_finite, loss_finite, terms, term_names, names, peaks)
 
-    def _density_control(self, step: int, info: dict[str, Any]) -> dict[str, int]:
+    def _verdict_on_device_at(self, step: int) -> bool:
+        """Whether step ``step`` takes its verdict on the device: asked for, fused Adam everywhere (its found_inf
+        skips a bad update), and no refinement at this step."""
+        if not self.device_verdict:
+            return False
+        refines_at = getattr(self.strategy, "refines_at", None)
+        if refines_at is None or refines_at(step):
+            return False
+        return all(isinstance(opt, torch.optim.Adam) and opt.defaults.get("fused") for opt in self.optimizers.values())
+
+    @staticmethod
+    def _optimizer_step(optimizer: torch.optim.Optimizer, found_inf: torch.Tensor | None) -> None:
+        """``optimizer.step()``; with ``found_inf`` (a device float, 1 for a bad step) fused Adam leaves the
+        parameters, its moments and its step count as they were where it is 1 (torch's gradient-scaler protocol)."""
+        if found_inf is None:
+            optimizer.step()
+            return
+        optimizer.found_inf = found_inf  # type: ignore[attr-defined]  # Adam.step reads getattr(self, "found_inf", None)
+        try:
+            optimizer.step()
+        finally:
+            del optimizer.found_inf  # type: ignore[attr-defined]
+
+    def _density_control(self, step: int, info: dict[str, Any], good: torch.Tensor | None = None) -> dict[str, int]:
         """Statistics from this step's render (after its backward), then grow / prune / reset on the schedule (mcmc:
-        relocate / add, and noise scaled by the means' learning rate after this step's schedule update)."""
+        relocate / add, and noise scaled by the means' learning rate after this step's schedule update). ``good``, a
+        device verdict: a bad step's render is invisible to the statistics (radii 0: its gradients never read) and
+        its noise 0, so density control is left as a skipped step leaves it."""
         params = self.model.gauss_params
+        if good is not None:
+            info = {**info, "radii": info["radii"] * good}
         if isinstance(self.strategy, MCMCStrategy):
             means_lr = self.optimizers["means"].param_groups[0]["lr"]
+            factor = None if good is None else good.to(params["means"].dtype)
             return self.strategy.step_post_backward(params, self.optimizers, self.strategy_state, step, info,
-                                                    lr=means_lr)
+                                                    lr=means_lr, noise_factor=factor)
         return self.strategy.step_post_backward(params, self.optimizers, self.strategy_state, step, info)
 
     # ----------------------------------------------------------------------------------------------- repairs, caps

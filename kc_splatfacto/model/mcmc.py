@@ -74,16 +74,22 @@ class MCMCStrategy:
     def step_pre_backward(self, params, optimizers, state: dict[str, Any], step: int, info: dict[str, Any]) -> None:
         """Nothing: MCMC reads no screen-space gradient."""
 
+    def refines_at(self, step: int) -> bool:
+        """Whether ``step_post_backward`` at ``step`` relocates and adds (host work), beside the noise of every step."""
+        return self.refine_start_iter < step < self.refine_stop_iter and step % self.refine_every == 0
+
     def step_post_backward(
-        self, params, optimizers, state: dict[str, Any], step: int, info: dict[str, Any], lr: float
+        self, params, optimizers, state: dict[str, Any], step: int, info: dict[str, Any], lr: float,
+        noise_factor: torch.Tensor | None = None,
     ) -> dict[str, int]:
-        """Relocate and add on the schedule, then inject noise (``lr``: the means' learning rate). Returns the counts
-        of what it did."""
+        """Relocate and add on the schedule, then inject noise (``lr``: the means' learning rate; ``noise_factor``, a
+        device scalar, multiplies the noise: 0 for a step whose update the device's verdict rejected). Returns the
+        counts of what it did."""
         report = {"relocated": 0, "added": 0}
-        if self.refine_start_iter < step < self.refine_stop_iter and step % self.refine_every == 0:
+        if self.refines_at(step):
             report["relocated"] = self._relocate_gs(params, optimizers, state, step)
             report["added"] = self._add_new_gs(params, optimizers, state)
-        ops.inject_noise_to_position(params, optimizers, state, scaler=lr * self.noise_lr)
+        ops.inject_noise_to_position(params, optimizers, state, scaler=lr * self.noise_lr, factor=noise_factor)
         return report
 
     @torch.no_grad()

@@ -251,16 +251,19 @@ def sample_add(params, optimizers: dict[str, torch.optim.Optimizer], state: dict
 
 @torch.no_grad()
 def inject_noise_to_position(params, optimizers: dict[str, torch.optim.Optimizer], state: dict[str, Any],
-                             scaler: float) -> None:
+                             scaler: float, factor: torch.Tensor | None = None) -> None:
     """Add to every mean Sigma g(o) ``scaler`` z: z ~ N(0, I) [N, 3] (torch's global RNG), Sigma = R S^2 R^T the
     Gaussian's covariance, g(o) = sigmoid(100 ((1 - o) - 0.995)) its noise gate (near 1 only for nearly transparent
-    Gaussians). In place: the Parameter and its Adam moments stay."""
+    Gaussians), times ``factor`` (a device scalar, 1 or 0: applied without reading it) when given. In place: the
+    Parameter and its Adam moments stay."""
     opacities = torch.sigmoid(params["opacities"].detach().flatten())
     variances = torch.exp(2.0 * params["scales"].detach())  # S^2
     rotmats = quat_to_rotmat(params["quats"].detach())  # normalizes
     gate = torch.sigmoid(NOISE_GATE_SHARPNESS * ((1.0 - opacities) - NOISE_GATE_CENTER))
     means = params["means"]
     noise = torch.randn_like(means) * gate[:, None] * scaler
+    if factor is not None:
+        noise = noise * factor  # x 1 is exact: a good step's noise is the host verdict's bit for bit
     # Sigma z as R (S^2 (R^T z)): two matrix-vector products per Gaussian, no [N, 3, 3] covariance
     in_local_axes = torch.einsum("nji,nj->ni", rotmats, noise) * variances
     means.add_(torch.einsum("nij,nj->ni", rotmats, in_local_axes))

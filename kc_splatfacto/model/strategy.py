@@ -99,11 +99,7 @@ class DefaultStrategy:
         if step >= self.refine_stop_iter:
             return report
         self._update_state(params, state, info)
-        if (
-            step > self.refine_start_iter
-            and step % self.refine_every == 0
-            and step % self.reset_every >= self.pause_refine_after_reset
-        ):
+        if self._grows_at(step):
             report["duplicated"], report["split"] = self._grow_gs(params, optimizers, state, step)
             report["pruned"] = self._prune_gs(params, optimizers, state, step)
             state["grad2d"].zero_()
@@ -116,10 +112,22 @@ class DefaultStrategy:
                     f"than {self.prune_scale3d} x scene scale {state['scene_scale']:.4g}); check the scene scale "
                     f"and the initialization, or lower --pipeline.model.cull-alpha-thresh"
                 )
-        if step % self.reset_every == 0 and step > 0:
+        if self._resets_at(step):
             ops.reset_opa(params, optimizers, state, value=self.prune_opa * 2.0)
             report["opacity_reset"] = 1
         return report
+
+    def refines_at(self, step: int) -> bool:
+        """Whether ``step_post_backward`` at ``step`` does more than accumulate statistics (grows, prunes or resets
+        opacities): the steps whose host work a device-side step verdict cannot replace."""
+        return step < self.refine_stop_iter and (self._grows_at(step) or self._resets_at(step))
+
+    def _grows_at(self, step: int) -> bool:
+        return (step > self.refine_start_iter and step % self.refine_every == 0
+                and step % self.reset_every >= self.pause_refine_after_reset)
+
+    def _resets_at(self, step: int) -> bool:
+        return step % self.reset_every == 0 and step > 0
 
     @torch.no_grad()
     def _update_state(self, params, state: dict[str, Any], info: dict[str, Any]) -> None:

@@ -24,11 +24,13 @@ host_syncs = importlib.util.module_from_spec(SPEC)
 sys.modules["host_syncs"] = host_syncs  # dataclasses look their module up while the class is built
 SPEC.loader.exec_module(host_syncs)
 
-#: the synchronisations an ordinary step keeps, each with why (by kind and 'module function', lines left out)
+#: the synchronisations an ordinary step keeps, each with why (by kind and 'module function', lines left out), by
+#: where the step's verdict is taken (machine.step_verdict)
 KEPT = {
-    # whether the step is good (render, loss and gradients reduced to one flag on the device): a bad step must be
-    # skipped before the optimizer applies it, so the verdict is needed on the host before the update
-    ("_local_scalar_dense", "engine/training_state.py _problem"): 1,
+    # whether the step is good (render, loss and gradients reduced to one flag on the device), read before the update
+    "host": {("_local_scalar_dense", "engine/training_state.py reason"): 1},
+    # the flag goes to fused Adam as found_inf and is read at the next log, evaluation or checkpoint (CUDA's default)
+    "device": {},
 }
 
 
@@ -42,8 +44,9 @@ def _by_function(counts, steps: int) -> dict:
     return out
 
 
-def _warm_trainer(method: str, tmp_path) -> Trainer:
+def _warm_trainer(method: str, tmp_path, step_verdict: str = "host") -> Trainer:
     config = tiny_demo_config(method, tmp_path, iterations=50, steps_scale=1.0)
+    config.machine.step_verdict = step_verdict
     config.logging.steps_per_log = 1000
     config.logging.steps_per_gradient_shares = 0
     trainer = Trainer(config)
@@ -53,14 +56,15 @@ def _warm_trainer(method: str, tmp_path) -> Trainer:
     return trainer
 
 
+@pytest.mark.parametrize("step_verdict", ["host", "device"])
 @pytest.mark.parametrize("method", ["splatfacto", "kc-splatfacto", "kc-splatfacto-corr"])
-def test_an_ordinary_step_keeps_only_the_step_verdict(method, tmp_path):
-    trainer = _warm_trainer(method, tmp_path)
+def test_an_ordinary_step_keeps_at_most_the_step_verdict(method, step_verdict, tmp_path):
+    trainer = _warm_trainer(method, tmp_path, step_verdict)
     steps = list(range(30, 38))
     assert all(s % trainer_module.PARAMETER_SCAN_EVERY for s in steps)
     found = host_syncs.count_ordinary_steps(trainer, steps, warm=2)
     counted = len(steps) - 2
-    assert _by_function(found.ours(), counted) == KEPT
+    assert _by_function(found.ours(), counted) == KEPT[step_verdict]
     # the step's copies from host memory are asynchronous (pinned on CUDA): the image and the camera's two matrices
     assert _by_function(found.async_copies, counted) == {("host-to-device copy", "model/splatfacto.py host_to_device"): 3}
     # the count is not blind inside the step: the torch rasterizer (gsplat on CUDA) synchronises, and is seen

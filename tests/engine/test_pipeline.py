@@ -14,16 +14,9 @@ import torch
 from kc_splatfacto.engine.optimizers import OptimizersConfig
 from kc_splatfacto.engine.pipeline import Pipeline
 from kc_splatfacto.engine.training_state import TrainingState
-from tests.training_utils import tiny_demo_config
+from tests.training_utils import demo_pipeline, tiny_demo_config
 
 PACKAGE = Path(__file__).resolve().parents[2] / "kc_splatfacto"
-
-
-def make_pipeline(tmp_path, method="kc-splatfacto", seed=0) -> Pipeline:
-    config = tiny_demo_config(method, tmp_path)
-    config.pipeline.datamanager.dataparser.demo_cache_dir = tmp_path / "demo-cache"
-    torch.manual_seed(seed)
-    return config.pipeline.setup(seed=seed, dataparser=config.pipeline.datamanager.resolve_dataparser())
 
 
 def one_step(pipeline: Pipeline, state: TrainingState, step: int):
@@ -31,7 +24,7 @@ def one_step(pipeline: Pipeline, state: TrainingState, step: int):
 
 
 def test_state_dict_round_trip_through_a_weights_only_load_restores_gaussians_order_and_step(tmp_path):
-    pipeline = make_pipeline(tmp_path / "a", seed=1)
+    pipeline, _ = demo_pipeline(tmp_path / "a", seed=1)
     state = TrainingState(pipeline.model, OptimizersConfig())
     for step in range(3):
         one_step(pipeline, state, step)
@@ -39,7 +32,7 @@ def test_state_dict_round_trip_through_a_weights_only_load_restores_gaussians_or
     torch.save(pipeline.state_dict(), buffer)
     buffer.seek(0)
     saved = torch.load(buffer, weights_only=True)
-    restored = make_pipeline(tmp_path / "b", seed=2)  # another seed: another image order until it is restored
+    restored, _ = demo_pipeline(tmp_path / "b", seed=2)  # another seed: another image order until it is restored
     restored.load_state_dict(saved, step=3)
     assert restored.model.step == 3
     for name, value in pipeline.model.gaussian_state().items():

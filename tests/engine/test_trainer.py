@@ -167,9 +167,12 @@ def test_wavelet_targets_are_computed_once_per_training_image(tmp_path, monkeypa
     assert len(calls) == 12  # 30 steps = 2.5 epochs over 12 images, one target each
 
 
-def test_non_finite_loss_skips_the_step_and_repeated_ones_stop_training(tmp_path):
-    config = tiny_demo_config("splatfacto", tmp_path, iterations=30)
+@pytest.mark.parametrize("step_verdict", ["host", "device"])
+def test_non_finite_loss_skips_the_step_and_repeated_ones_stop_training(tmp_path, step_verdict):
+    # the full schedule's steps (no refinement in 30 steps): every verdict is the device's where asked
+    config = tiny_demo_config("splatfacto", tmp_path, iterations=30, steps_scale=1.0)
     config.max_consecutive_bad_steps = 3
+    config.machine.step_verdict = step_verdict
     trainer = Trainer(config)
     trainer.setup()
     model = trainer.model
@@ -198,12 +201,16 @@ def test_non_finite_loss_skips_the_step_and_repeated_ones_stop_training(tmp_path
     records = read_metrics(trainer.run_dir / "metrics.jsonl")
     bad = [r for r in records if r["kind"] == "bad_step"]
     assert [r["step"] for r in bad] == [6, 13, 14, 15]
+    assert [r["consecutive"] for r in bad] == [1, 1, 2, 3]
     assert "non-finite loss" in bad[0]["reason"]
     # the last good state is saved and finite
     checkpoint = list_checkpoints(trainer.run_dir / "nerfstudio_models")[-1]
     assert checkpoint.name in str(error.value)
     state = torch.load(checkpoint, weights_only=False)
-    assert state["step"] == 15  # iterations consumed, skipped ones included (the schedules advanced with them)
+    # iterations consumed, skipped ones included (the schedules advanced with them); the device's verdicts are read
+    # at the next log (every 10 steps), so the good steps 16-20 are in its state
+    assert state["step"] == (15 if step_verdict == "host" else 20)
+    assert torch.equal(state["model"]["means"], model.means.detach())  # the state when it stopped
     assert all(torch.isfinite(v).all() for v in state["model"].values())
 
 

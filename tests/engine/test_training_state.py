@@ -12,26 +12,16 @@ from pathlib import Path
 import pytest
 import torch
 
-from kc_splatfacto.engine.pipeline import Pipeline
 from kc_splatfacto.engine.training_state import StepHooks, TrainingState
 from kc_splatfacto.model.mcmc import GaussianCapError, MCMCStrategy
 from kc_splatfacto.model.strategy import DefaultStrategy
-from tests.training_utils import tiny_demo_config
+from tests.training_utils import demo_pipeline
 
 PACKAGE = Path(__file__).resolve().parents[2] / "kc_splatfacto"
 
 
-def make_pipeline(tmp_path, method="kc-splatfacto", seed=0, **overrides) -> tuple[Pipeline, object]:
-    config = tiny_demo_config(method, tmp_path, **overrides)
-    config.pipeline.datamanager.dataparser.demo_cache_dir = tmp_path.parent / "demo-cache"
-    torch.manual_seed(seed)
-    pipeline = config.pipeline.setup(seed=seed, dataparser=config.pipeline.datamanager.resolve_dataparser())
-    pipeline.model.train()
-    return pipeline, config
-
-
 def make_state(tmp_path, method="kc-splatfacto", seed=0, strategy=None, **overrides):
-    pipeline, config = make_pipeline(tmp_path, method, seed, **overrides)
+    pipeline, config = demo_pipeline(tmp_path, method, seed, **overrides)
     return pipeline, TrainingState(pipeline.model, config.optimizers, strategy=strategy)
 
 
@@ -60,7 +50,7 @@ def test_the_step_sets_the_model_s_step_and_what_the_schedules_read(tmp_path):
 
 
 def test_density_control_reads_the_step_s_own_render_and_the_render_s_info_stays_inside(tmp_path):
-    pipeline, config = make_pipeline(tmp_path)
+    pipeline, config = demo_pipeline(tmp_path)
     strategy = RecordingStrategy(**{f: getattr(config.pipeline.model.density_strategy(pipeline.model.num_train_data),
                                                f) for f in DefaultStrategy.__dataclass_fields__})
     strategy.infos = []
@@ -107,7 +97,7 @@ def test_steps_of_the_state_equal_gsplat_simple_trainer_s_step_written_by_hand(t
         for key, value in result.density.items():
             counts[key] = counts.get(key, 0) + value
     assert counts.get("duplicated", 0) + counts.get("split", 0) > 0  # density control did change the count
-    by_hand, config = make_pipeline(tmp_path / "hand", method, seed=4, densify_grad_thresh=1e-7)
+    by_hand, config = demo_pipeline(tmp_path / "hand", method, seed=4, densify_grad_thresh=1e-7)
     _gsplat_style_steps(by_hand, config, steps)
     for name, value in pipeline.model.gaussian_state().items():
         assert torch.equal(value, by_hand.model.gaussian_state()[name]), name
@@ -158,7 +148,7 @@ def test_non_finite_gaussians_are_removed_with_their_optimizer_rows_and_statisti
 def test_the_mcmc_strategy_is_built_from_the_config_and_refuses_a_cap_below_the_seed_points(tmp_path):
     _, state = make_state(tmp_path / "a", "splatfacto-mcmc")
     assert isinstance(state.strategy, MCMCStrategy)
-    pipeline, config = make_pipeline(tmp_path / "b", "splatfacto-mcmc", max_gs_num=10)
+    pipeline, config = demo_pipeline(tmp_path / "b", "splatfacto-mcmc", max_gs_num=10)
     with pytest.raises(GaussianCapError, match="max_gs_num \\(10\\) is smaller"):
         TrainingState(pipeline.model, config.optimizers)
 

@@ -281,11 +281,13 @@ def test_kc_train_with_a_cap_below_the_seed_points_prints_one_line_naming_the_fl
     assert lines[0].endswith("raise --pipeline.model.max-gs-num to at least 2000")
 
 
-def test_an_ordinary_mcmc_step_adds_no_host_synchronisation(tmp_path):
+@pytest.mark.parametrize("step_verdict", ["host", "device"])
+def test_an_ordinary_mcmc_step_adds_no_host_synchronisation(tmp_path, step_verdict):
     # the noise on the means and the two loss terms run every step: device work only (relocation and growth, every
     # refine_every steps, read their counts on the host)
     config = tiny_demo_config("splatfacto", tmp_path, iterations=40, steps_scale=1.0, strategy="mcmc",
                               cull_alpha_thresh=0.005)
+    config.machine.step_verdict = step_verdict
     config.logging.steps_per_log = 1000
     config.logging.steps_per_gradient_shares = 0
     trainer = Trainer(config)
@@ -295,4 +297,4 @@ def test_an_ordinary_mcmc_step_adds_no_host_synchronisation(tmp_path):
     steps = list(range(30, 36))
     assert all(s % trainer_module.PARAMETER_SCAN_EVERY for s in steps)
     found = host_syncs.count_ordinary_steps(trainer, steps, warm=2)  # as CUDA counts them (tests/engine)
-    assert _by_function(found.ours(), len(steps) - 2) == KEPT  # the step verdict alone, as without MCMC
+    assert _by_function(found.ours(), len(steps) - 2) == KEPT[step_verdict]  # the step verdict's, as without MCMC

@@ -87,26 +87,43 @@ def _camera() -> Cameras:
     return Cameras(camera_to_worlds=c2w, fx=60.0, fy=60.0, cx=W / 2, cy=H / 2, width=W, height=H)
 
 
-def test_it_trains_on_the_cpu_with_nerfstudios_density_control():
-    # refinement at step 9: after the 2-step warm-up, every 3 steps, once the pause of num_train_data + refine_every
-    # steps after the (step-0) opacity reset is over
-    model = plugin_model(warmup_length=2, refine_every=3, densify_grad_thresh=1e-7, sh_degree_interval=2)
+def train_by_hand(model, steps: int = 12, on_losses=None, on_density=None) -> list[int]:
+    """nerfstudio's training step written out (its Trainer without the loop's extras): render, loss, backward, Adam,
+    then the model's density control, on one random image. ``on_losses(step, outputs, losses)`` sees each step's
+    loss terms; ``on_density(step, means)`` each step after density control, with the means before it. Returns the
+    Gaussian count after each step."""
     optimizers = {name: torch.optim.Adam(params, lr=1e-2) for name, params in model.get_gaussian_param_groups().items()}
     model.optimizers = optimizers
     gt = (torch.rand(H, W, 3, generator=torch.Generator().manual_seed(3)) * 255).to(torch.uint8)
     counts = []
-    for step in range(12):
+    for step in range(steps):
         model.step = step
         outputs = model.get_outputs(_camera())
-        assert outputs["rgb"].shape == (H, W, 3) and model.info["radii"].shape == (1, model.num_points)
         losses = model.get_loss_dict(outputs, {"image": gt, "image_idx": 0})
-        assert set(TERMS) <= set(losses)
+        if on_losses is not None:
+            on_losses(step, outputs, losses)
         sum(losses.values()).backward()
         for optimizer in optimizers.values():
             optimizer.step()
             optimizer.zero_grad()
+        means = model.gauss_params["means"].detach().clone()
         model.step_post_backward(step)
+        if on_density is not None:
+            on_density(step, means)
         counts.append(model.num_points)
+    return counts
+
+
+def test_it_trains_on_the_cpu_with_nerfstudios_density_control():
+    # refinement at step 9: after the 2-step warm-up, every 3 steps, once the pause of num_train_data + refine_every
+    # steps after the (step-0) opacity reset is over
+    model = plugin_model(warmup_length=2, refine_every=3, densify_grad_thresh=1e-7, sh_degree_interval=2)
+
+    def check(step, outputs, losses):
+        assert outputs["rgb"].shape == (H, W, 3) and model.info["radii"].shape == (1, model.num_points)
+        assert set(TERMS) <= set(losses)
+
+    counts = train_by_hand(model, on_losses=check)
     # every Gaussian seen with a gradient above the threshold is split, then the transparent ones are pruned: gsplat
     # 1.4's DefaultStrategy on the CPU rasterizer's screen statistics
     assert counts[:9] == [400] * 9 and counts[9] == counts[-1] and 400 < counts[9] < 800
@@ -130,26 +147,18 @@ def test_with_mcmc_it_trains_on_the_cpu_holds_its_cap_and_adds_the_two_terms():
     # refinement at steps 3, 6, 9 (after the 2-step warm-up, every 3 steps): 400 -> 420 -> 440, then the cap holds
     model = plugin_model(strategy="mcmc", max_gs_num=440, warmup_length=2, refine_every=3, cull_alpha_thresh=0.005,
                          sh_degree_interval=2)
-    optimizers = {name: torch.optim.Adam(params, lr=1e-2) for name, params in model.get_gaussian_param_groups().items()}
-    model.optimizers = optimizers
-    gt = (torch.rand(H, W, 3, generator=torch.Generator().manual_seed(3)) * 255).to(torch.uint8)
-    counts = []
-    for step in range(12):
-        model.step = step
-        losses = model.get_loss_dict(model.get_outputs(_camera()), {"image": gt, "image_idx": 0})
+
+    def check_regularisers(step, outputs, losses):
         opacities = torch.sigmoid(model.gauss_params["opacities"].detach().double())
         scales = torch.exp(model.gauss_params["scales"].detach().double())
         assert float(losses["mcmc_opacity_reg"].detach()) == pytest.approx(0.01 * float(opacities.mean()), rel=1e-5)
         assert float(losses["mcmc_scale_reg"].detach()) == pytest.approx(0.01 * float(scales.mean()), rel=1e-5)
-        sum(losses.values()).backward()
-        for optimizer in optimizers.values():
-            optimizer.step()
-            optimizer.zero_grad()
-        means = model.gauss_params["means"].detach().clone()
-        model.step_post_backward(step)
+
+    def check_noise(step, means):
         if step % 3:  # no refinement: only the noise, scaled by the means' rate, moved the means
             assert not torch.equal(means, model.gauss_params["means"])
-        counts.append(model.num_points)
+
+    counts = train_by_hand(model, on_losses=check_regularisers, on_density=check_noise)
     assert counts == [400] * 3 + [420] * 3 + [440] * 6
     assert all(torch.isfinite(p).all() for p in model.gauss_params.values())
 
