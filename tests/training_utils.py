@@ -53,6 +53,19 @@ def demo_pipeline(tmp_path: Path, method: str = "kc-splatfacto", seed: int = 0, 
     return pipeline, config
 
 
+def poison_loss_at(model, steps) -> None:
+    """The model's loss is NaN at each step in ``steps`` (its render and gradients otherwise as usual)."""
+    original = model.get_loss_dict
+
+    def poisoned(outputs, batch):
+        losses = original(outputs, batch)
+        if model.step in steps:
+            losses["main_loss"] = losses["main_loss"] * float("nan")
+        return losses
+
+    model.get_loss_dict = poisoned
+
+
 def interrupt_cli_training(tmp_path: Path, signum: int, timestamp: str, env: dict) -> tuple[subprocess.CompletedProcess, Path]:
     """Start ``kc-train splatfacto --data demo`` (a budget it never reaches) in ``tmp_path``, send ``signum`` once
     it has logged a training record, and wait for it to exit. Returns (the finished process, the run folder)."""

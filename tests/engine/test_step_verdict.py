@@ -12,23 +12,10 @@ import torch
 from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.trainer import Trainer
 from kc_splatfacto.engine.training_state import TrainingState
-from tests.training_utils import demo_pipeline, tiny_demo_config
+from tests.training_utils import demo_pipeline, poison_loss_at, tiny_demo_config
 
 STEPS = 40
 BAD_STEP = 15  # an odd step: no refinement at the tiny config's compressed schedule (every 2 steps from step 10)
-
-
-def poison_loss_at(model, step: int) -> None:
-    """The model's loss is NaN at ``step`` (its render and gradients otherwise as usual)."""
-    original = model.get_loss_dict
-
-    def poisoned(outputs, batch):
-        losses = original(outputs, batch)
-        if model.step == step:
-            losses["main_loss"] = losses["main_loss"] * float("nan")
-        return losses
-
-    model.get_loss_dict = poisoned
 
 
 def train(tmp_path, method: str, device_verdict: bool, bad_step: int | None = None, fused: bool = True):
@@ -40,12 +27,12 @@ def train(tmp_path, method: str, device_verdict: bool, bad_step: int | None = No
             getattr(config.optimizers, name).optimizer.fused = False
     state = TrainingState(pipeline.model, config.optimizers, device_verdict=device_verdict)
     if bad_step is not None:
-        poison_loss_at(pipeline.model, bad_step)
+        poison_loss_at(pipeline.model, {bad_step})
     kinds, history = [], []
     for step in range(STEPS):
         result = state.step(step, pipeline.datamanager.next_train())
         kinds.append("D" if result.verdict is not None else "S" if result.skipped else "H")
-        history.append({k: v.clone() for k, v in pipeline.model.gaussian_state().items()})
+        history.append(pipeline.model.gaussian_state())  # detached copies
     return pipeline, state, "".join(kinds), history
 
 
@@ -64,13 +51,13 @@ def assert_same_states(a: TrainingState, b: TrainingState) -> None:
 @pytest.mark.parametrize("method", ["splatfacto", "kc-splatfacto", "splatfacto-mcmc"])
 def test_good_steps_are_the_host_verdict_s_bit_for_bit(tmp_path, method):
     _, host, host_kinds, _ = train(tmp_path / "host", method, device_verdict=False)
-    _, device, kinds, _ = train(tmp_path / "device", method, device_verdict=True)
+    _, device, kinds, history = train(tmp_path / "device", method, device_verdict=True)
     assert set(host_kinds) == {"H"}
     # the device takes it on the steps without refinement, the host on the others (the count grew there)
     assert kinds.count("D") >= STEPS // 2 and "H" in kinds, kinds
     refining = [step for step in range(STEPS) if device.strategy.refines_at(step)]
     assert [step for step, kind in enumerate(kinds) if kind == "H"] == refining
-    assert device.model.num_points != demo_pipeline(tmp_path / "seed", method, seed=0)[0].model.num_points
+    assert device.model.num_points != len(history[0]["means"])  # step 0 refines nothing
     assert_same_states(host, device)
 
 
@@ -97,7 +84,7 @@ def test_a_bad_step_on_the_device_leaves_mcmc_s_gaussians_as_they_were(tmp_path)
 def test_the_verdict_read_later_says_what_the_host_says(tmp_path):
     pipeline, config = demo_pipeline(tmp_path, "splatfacto", seed=0)
     state = TrainingState(pipeline.model, config.optimizers, device_verdict=True)
-    poison_loss_at(pipeline.model, 1)
+    poison_loss_at(pipeline.model, {1})
     returned = []
     poisoned = pipeline.model.get_loss_dict
     pipeline.model.get_loss_dict = lambda outputs, batch: returned.append(poisoned(outputs, batch)) or returned[-1]
@@ -142,12 +129,12 @@ def test_the_trainer_skips_a_bad_update_on_the_device_and_reports_it_at_the_next
     trainer = Trainer(config)
     trainer.setup()
     assert trainer.state.device_verdict
-    poison_loss_at(trainer.model, 5)
+    poison_loss_at(trainer.model, {5})
     snapshots, waiting = {}, {}
     original = trainer.train_iteration
 
     def recording(step):
-        snapshots[step] = {k: v.clone() for k, v in trainer.model.gaussian_state().items()}
+        snapshots[step] = trainer.model.gaussian_state()  # detached copies
         waiting[step] = len(trainer._unread_verdicts)
         return original(step)
 

@@ -13,7 +13,7 @@ from kc_splatfacto.engine.trainer import Trainer, TrainingDivergedError
 from kc_splatfacto.losses.frequency import FrequencyLossConfig
 from kc_splatfacto.lpips import lpips_available
 from kc_splatfacto.model.strategy import NoGaussiansLeftError
-from tests.training_utils import tiny_demo_config
+from tests.training_utils import poison_loss_at, tiny_demo_config
 
 
 @pytest.mark.parametrize("sh_views_per_coefficient", [0.0, 2.0])
@@ -176,16 +176,7 @@ def test_non_finite_loss_skips_the_step_and_repeated_ones_stop_training(tmp_path
     trainer = Trainer(config)
     trainer.setup()
     model = trainer.model
-    original = model.get_loss_dict
-    bad_steps = {5, 12, 13, 14}
-
-    def poisoned(outputs, batch):
-        losses = original(outputs, batch)
-        if model.step in bad_steps:
-            losses["main_loss"] = losses["main_loss"] * float("nan")
-        return losses
-
-    model.get_loss_dict = poisoned
+    poison_loss_at(model, {5, 12, 13, 14})
     snapshots = {}
     original_iteration = trainer.train_iteration
 
