@@ -45,6 +45,28 @@ def test_every_lease_fits_the_device_tools_limits():
                <= set(c.carry) for c in campaign.LEASES["study"])
 
 
+def test_the_study_queue_runs_each_seeds_pairs_before_the_low_pass_arm(tmp_path):
+    """Issue 56's low-pass arm rides in the GPU study on fern-12 and flower-12 only, after each seed's pairs of the
+    GPU issue's study: a lease cut short loses low-pass runs, never half a pair."""
+    from kc_splatfacto.registry import discover_methods
+
+    full = campaign.FULL
+    assert set(full.methods) <= set(discover_methods())
+    assert full.methods == ("splatfacto", "kc-splatfacto", "splatfacto-lowpass")
+    queue = campaign.study_queue(tmp_path / "runs", full, done_before=set())
+    assert len(queue) == len(full.seeds) * (2 * 3 + 2)
+    assert queue[:8] == [("fern-12", "splatfacto", 0), ("fern-12", "kc-splatfacto", 0),
+                         ("flower-12", "splatfacto", 0), ("flower-12", "kc-splatfacto", 0),
+                         ("castle-P30", "splatfacto", 0), ("castle-P30", "kc-splatfacto", 0),
+                         ("fern-12", "splatfacto-lowpass", 0), ("flower-12", "splatfacto-lowpass", 0)]
+    assert queue[8] == ("fern-12", "splatfacto", 1)
+    assert not any(scene == "castle-P30" and method == "splatfacto-lowpass" for scene, method, _ in queue)
+    # what an earlier lease finished is left out, and nothing else
+    later = campaign.study_queue(tmp_path / "runs", full, done_before={"fern-12/splatfacto-lowpass/seed0",
+                                                                       "castle-P30/splatfacto/seed1"})
+    assert sorted(set(queue) - set(later)) == [("castle-P30", "splatfacto", 1), ("fern-12", "splatfacto-lowpass", 0)]
+
+
 def test_a_plan_over_the_limits_is_named():
     long_call = campaign.Call((("setup", 590), ("bench", 100)), "long")
     problems = campaign.check_plan((long_call, long_call, long_call))
