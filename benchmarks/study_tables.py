@@ -78,6 +78,10 @@ def main() -> None:
     report = json.loads((args.study_dir / "pooled.json").read_text())
     print(per_scene_table(report["paired"]), end="\n\n")
     print(pooled_table(report["pooled"]), end="\n\n")
+    for reference, against in report.get("also_against", {}).items():  # kc-bench --also-against
+        print(f"against {reference}:", end="\n\n")
+        print(per_scene_table(against["paired"]), end="\n\n")
+        print(pooled_table(against["pooled"]), end="\n\n")
     for method, ratios in cost_ratios(args.study_dir / "evals.csv", args.baseline, args.step).items():
         print(f"cost {method}: {sum(ratios) / len(ratios):.3f}x {args.baseline}'s training CPU time at step "
               f"{args.step} ({min(ratios):.2f}-{max(ratios):.2f} over {len(ratios)} pairs)")

@@ -526,9 +526,14 @@ def write_report(
     baseline: str | None = None,
     time_key: str = DEFAULT_TIME_KEY,
     lpips_note: str | None = None,
+    also_against: Sequence[str] = (),
 ) -> dict[str, Path]:
     """Everything :mod:`report` makes, under ``out_dir``: ``evals.csv``, ``evals.json``, ``summary.json``,
-    ``results.md`` and one ``<metric>_vs_time.png`` per metric that has values. Returns the paths by name."""
+    ``results.md`` and one ``<metric>_vs_time.png`` per metric that has values. Returns the paths by name.
+
+    ``also_against``: further reference methods; for each, ``results.md`` adds the per-seed (and, over several scenes,
+    pooled) differences of every method but ``baseline`` and itself to it, and ``pooled.json`` holds them under
+    ``also_against`` (for a three-arm study: the third arm against the second, not only against the baseline)."""
     if not rows:
         raise ValueError("write_report: no evaluation rows (did the runs evaluate? set eval_at_steps)")
     out_dir = Path(out_dir)
@@ -541,14 +546,20 @@ def write_report(
     paths["summary"].write_text(json.dumps(summary, indent=1))
     paths["table"] = out_dir / "results.md"
     table = markdown_table(summary, baseline, lpips_note, lpips_label=metric_label("lpips", rows))
-    if baseline:
-        paired = paired_deltas(rows, baseline)
-        table += ("\n" + markdown_paired_table(paired, baseline)) if paired else ""
+    comparisons = {}
+    for reference in dict.fromkeys([baseline, *also_against] if baseline else also_against):
+        others = rows if reference == baseline else [r for r in rows if r["method"] != baseline]
+        paired = paired_deltas(others, reference)
+        table += ("\n" + markdown_paired_table(paired, reference)) if paired else ""
         if len({e["scene"] for e in paired}) > 1:
             pooled = pooled_deltas(paired)
-            table += "\n" + markdown_pooled_table(pooled, baseline)
-            paths["pooled"] = out_dir / "pooled.json"
-            paths["pooled"].write_text(json.dumps({"paired": paired, "pooled": pooled}, indent=1))
+            table += "\n" + markdown_pooled_table(pooled, reference)
+            comparisons[reference] = {"paired": paired, "pooled": pooled}
+    if baseline in comparisons:
+        also = {reference: found for reference, found in comparisons.items() if reference != baseline}
+        paths["pooled"] = out_dir / "pooled.json"
+        paths["pooled"].write_text(json.dumps({**comparisons[baseline], **({"also_against": also} if also else {})},
+                                              indent=1))
     paths["table"].write_text(table)
     for metric in METRICS:
         png = out_dir / f"{metric}_vs_time.png"

@@ -271,7 +271,7 @@ class Study:
             )
         if rows:
             self.paths = write_report(rows, self.out_dir, baseline=self.baseline, time_key=self.args.time_key,
-                                      lpips_note=lpips_note)
+                                      lpips_note=lpips_note, also_against=self.args.also_against)
             if self.baseline:  # the paired difference at every evaluated step (docs/report.md)
                 self.paths.update(write_along_training(rows, self.out_dir, self.baseline, self.args.time_key))
             self.paths.update(write_per_view(self._final_views(), self.out_dir))
@@ -482,6 +482,13 @@ def check_bench_args(args: argparse.Namespace) -> None:
     elif args.baseline not in args.methods:
         raise UserError(f"--baseline {args.baseline} is not among --methods ({', '.join(args.methods)})"
                         f"{did_you_mean(args.baseline, args.methods)}: add it to --methods or choose one of them")
+    for reference in args.also_against:
+        if reference not in args.methods:
+            raise UserError(f"--also-against {reference} is not among --methods ({', '.join(args.methods)})"
+                            f"{did_you_mean(reference, args.methods)}: add it to --methods or choose one of them")
+        if reference == args.baseline:
+            raise UserError(f"--also-against {reference} is the baseline, whose differences the report has already; "
+                            "name another method")
 
 
 def scene_name(data: str | Path) -> str:
@@ -498,6 +505,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS), help="registered method names")
     parser.add_argument("--baseline", default=None,
                         help=f"method the deltas are taken against (default: {DEFAULT_BASELINE} when among --methods)")
+    parser.add_argument("--also-against", nargs="+", default=[], metavar="METHOD",
+                        help="further reference methods: the report also pairs every method but the baseline with "
+                             "each (a third arm against the second, not only against the baseline)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--max-num-iterations", type=int, default=1000, help="the step budget of every run")
     parser.add_argument("--num-evals", type=int, default=8, help="log-spaced test evaluations per run")

@@ -61,17 +61,26 @@ def format_duration(seconds: float | None) -> str:
     return f"{hours}h{rest // 60:02d}m" if hours else f"{rest // 60}m{rest % 60:02d}s"
 
 
+def recorded_wall(records: list[dict[str, Any]]) -> float | None:
+    """The wall time a finished run's ``metrics.jsonl`` records: its last ``elapsed_s`` (training, evaluations and
+    saves, over every resumption), or None when no record has one."""
+    return next((float(r["elapsed_s"]) for r in reversed(records) if "elapsed_s" in r), None)
+
+
 class Progress:
     """Counts and an ETA for a study of ``total`` runs with ``slots`` running at once.
 
-    The ETA is the mean wall time of the runs that trained here (reused runs cost nothing) times the runs left,
-    divided by the slots; the first run's time includes kernel compilation, so the estimate settles after a few.
+    The ETA is the mean wall time of the runs that trained here times the runs left, divided by the slots; the first
+    run's time includes kernel compilation, so the estimate settles after a few. Until a run has trained here (a
+    study resumed with ``--resume``), the mean is that of the reused runs' recorded wall times: the same study's
+    runs, timed where they trained, which is a better guess than none for the hour the first new run takes.
     """
 
     def __init__(self, total: int, slots: int, stream=None):
         self.total, self.slots = total, max(1, slots)
         self.finished = self.failed = self.running = 0
         self.trained_walls: list[float] = []
+        self.reused_walls: list[float] = []
         self.stream = stream or sys.stderr
 
     def started(self) -> None:
@@ -83,20 +92,25 @@ class Progress:
         self.failed += result["status"] == "failed"
         if result["status"] in ("trained", "resumed", "restarted"):
             self.trained_walls.append(result["wall_s"])
+        elif result["status"] == "reused" and (wall := recorded_wall(result["records"])) is not None:
+            self.reused_walls.append(wall)
 
     def eta(self) -> float | None:
         left = self.total - self.finished
         if left == 0:
             return 0.0
-        if not self.trained_walls:
+        walls = self.trained_walls or self.reused_walls
+        if not walls:
             return None
-        return sum(self.trained_walls) / len(self.trained_walls) * left / self.slots
+        return sum(walls) / len(walls) * left / self.slots
 
     def line(self) -> str:
         queued = self.total - self.finished - self.running
         failed = f" ({self.failed} failed)" if self.failed else ""
+        eta = self.eta()
+        source = " (from the reused runs' recorded times)" if eta and not self.trained_walls else ""
         return (f"[kc-bench] {self.finished}/{self.total} finished{failed}, {self.running} running, {queued} queued; "
-                f"ETA {format_duration(self.eta())}")
+                f"ETA {format_duration(eta)}{source}")
 
     def print(self) -> None:
         print(self.line(), file=self.stream, flush=True)

@@ -259,3 +259,37 @@ def test_clocks_leave_out_the_first_steps_start_up():
     assert compiled[1]["train_s"] == pytest.approx(0.02 * 50) and compiled[1]["train_cpu_s"] == pytest.approx(0.03 * 50)
     assert report.clock_offsets(_timed_log(110.0, 104.0))["train_cpu_s"] == pytest.approx(104.0)
     assert report.clock_offsets([{"kind": "eval", "step": 1, "train_s": 5.0}])["train_s"] == 0.0  # nothing to compare
+
+
+def test_also_against_pairs_the_third_arm_with_the_second(tmp_path):
+    """A three-arm study's report against a second reference: low-pass minus kc at each (scene, seed), by hand, and
+    pooled as scipy's one-sample t interval over the pairs; the baseline is not paired with the second reference."""
+    from scipy import stats
+
+    rng = np.random.default_rng(11)
+    psnr = {(scene, method, seed): 25 + rng.normal(0, 1) for scene in ("a", "b") for method in
+            ("splatfacto", "kc-splatfacto", "splatfacto-lowpass") for seed in range(3)}
+    rows = [{"scene": scene, "method": method, "seed": seed, "step": 100, "elapsed_s": 1.0, "train_s": 1.0,
+             "psnr": value, "ssim": 0.8, "lpips": None, "lpips_vgg": None}
+            for (scene, method, seed), value in psnr.items()]
+    paths = report.write_report(rows, tmp_path / "out", baseline="splatfacto", also_against=["kc-splatfacto"])
+    saved = json.loads(paths["pooled"].read_text())
+    assert [e["method"] for e in saved["paired"]] == ["kc-splatfacto", "splatfacto-lowpass"] * 2  # as before
+    against = saved["also_against"]["kc-splatfacto"]
+    assert [(e["scene"], e["method"]) for e in against["paired"]] == [("a", "splatfacto-lowpass"),
+                                                                      ("b", "splatfacto-lowpass")]
+    by_hand = [psnr[(scene, "splatfacto-lowpass", s)] - psnr[(scene, "kc-splatfacto", s)]
+               for scene in ("a", "b") for s in range(3)]
+    np.testing.assert_allclose([v for e in against["paired"] for v in e["psnr_db"]], by_hand, rtol=1e-12)
+    (pooled,) = against["pooled"]
+    assert pooled["num_pairs"] == 6
+    assert pooled["psnr_db_all_pairs_interval"] == pytest.approx(
+        stats.ttest_1samp(by_hand, 0.0).confidence_interval(0.95), abs=1e-10)
+    table = paths["table"].read_text()
+    assert "Per-seed differences to `kc-splatfacto`" in table and "differences to `kc-splatfacto` at the same seed" in table
+    low, high = pooled["psnr_db_all_pairs_interval"]
+    assert f"{np.mean(by_hand):+.2f} [{low:+.2f}, {high:+.2f}]" in table
+    # without it, the report is as it was
+    plain = report.write_report(rows, tmp_path / "plain", baseline="splatfacto")
+    assert "also_against" not in json.loads(plain["pooled"].read_text())
+    assert "`kc-splatfacto`" not in plain["table"].read_text()

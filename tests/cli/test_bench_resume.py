@@ -165,3 +165,17 @@ def test_runs_at_once_on_this_cpu_share_its_memory_budget(tmp_path, monkeypatch)
     bench.share_memory_budget(specs, workers=2)
     assert specs[0].config.machine.memory_budget_gb == round(8 * memory.BUDGET_FRACTION / 2, 2)
     assert specs[1].config.machine.memory_budget_gb == 3.0
+
+
+def test_also_against_must_name_another_of_the_methods(tmp_path):
+    def check(*extra):
+        args = bench.build_parser().parse_args(["--data", "demo", "--methods", "splatfacto", "kc-splatfacto",
+                                                "--output-dir", str(tmp_path), *extra])
+        bench.check_bench_args(args)
+        return args
+
+    assert check("--also-against", "kc-splatfacto").also_against == ["kc-splatfacto"]
+    with pytest.raises(bench.UserError, match="--also-against kc-splatfaco is not among --methods .*kc-splatfacto"):
+        check("--also-against", "kc-splatfaco")
+    with pytest.raises(bench.UserError, match="--also-against splatfacto is the baseline"):
+        check("--also-against", "splatfacto")
