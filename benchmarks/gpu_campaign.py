@@ -785,13 +785,16 @@ def study_driver(work: Path, dry: bool) -> int:
 
 
 def write_study_report(runs: Path, out: Path, settings: StudySettings, data: Path = SHARED_DATA) -> int:
-    """The report of the finished runs (kc-bench --report-only: results.md, along_training.md, figures)."""
+    """The report of the finished runs (kc-bench --report-only: results.md, along_training.md, figures); with extra
+    arms, their differences to kc-splatfacto beside those to splatfacto."""
     scenes = [s for s, _ in settings.scenes if (runs / s).is_dir()]
     seeds = sorted({int(d.name[4:]) for d in runs.glob("*/*/seed*")})
     if not scenes:
         return 0
     argv = [sys.executable, "-m", "kc_splatfacto.cli.bench", *settings.bench_args(data, scenes, seeds, settings.methods),
             "--output-dir", str(out), "--runs-dir", str(runs), "--report-only"]
+    if len(settings.methods) > len(STUDY_METHODS):  # issue 56 asks for the extra arms against kc-splatfacto too
+        argv += ["--also-against", STUDY_METHODS[1]]
     # the tree first, the caller's paths kept after it (a dist-info there may be what registers this tree's methods)
     path = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
     return subprocess.run(argv, cwd=ROOT, env={**os.environ, "PYTHONPATH": path}).returncode

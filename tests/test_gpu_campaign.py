@@ -174,6 +174,10 @@ def test_the_dry_run_runs_every_phase_and_a_second_lease_reuses_the_first_ones_r
     assert bench_log.count("| kc-splatfacto |") == 2 and "syncs | launches" in bench_log
     results = (work / "collected" / "study" / "results.md").read_text()
     assert "fern-12" in results and "flower-12" in results
+    # the low-pass arm against both arms of the pair: per-seed tables to splatfacto and to kc-splatfacto
+    assert "differences to `splatfacto`" in results and "differences to `kc-splatfacto`" in results
+    lowpass_rows = [line for line in results.splitlines() if line.startswith(f"| fern-12 | {campaign.LOWPASS_ARM} |")]
+    assert len(lowpass_rows) >= 3, results  # its final metrics, and one row in each paired table
     # the suite's outcome by name, from its junit XML: counts, then each failure; skips by reason
     summary = (work / "first" / "logs" / "call1-suite-summary.txt").read_text()
     assert summary.splitlines()[0].endswith("0 failed, 0 error, 1 skipped")

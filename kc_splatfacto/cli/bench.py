@@ -232,18 +232,28 @@ def choose_runner(args: argparse.Namespace):
 
 
 class Study:
-    """The results of a study's runs as they arrive, and its report, rewritten after every run in the runs' planned
-    order (whatever order they finished in), so an interrupted study leaves a report of what it finished."""
+    """The results of a study's runs as they arrive, and its report in the runs' planned order (whatever order they
+    finished in), rewritten after every run trained here, so an interrupted study leaves a report of what it finished.
+    A run reused as it is joins the report with the next trained run or at the end (:meth:`write_if_behind`): a
+    resumed study reuses tens of runs in its first minutes, and a report per run took a core from the training."""
 
     def __init__(self, specs: Sequence[RunSpec], out_dir: Path, args: argparse.Namespace):
         self.specs, self.out_dir, self.args = list(specs), out_dir, args
         self.results: dict[int, dict] = {}
         self.baseline = args.baseline if args.baseline in args.methods else None
         self.paths: dict[str, Path] = {}
+        self.behind = False  # results that the written report lacks
 
     def add(self, result: dict) -> None:
         self.results[result["index"]] = result
-        self.write()
+        if result["status"] == "reused":
+            self.behind = True
+        else:
+            self.write()
+
+    def write_if_behind(self) -> None:
+        if self.behind:
+            self.write()
 
     def finished_runs(self) -> list[dict]:
         runs = []
@@ -259,6 +269,7 @@ class Study:
         return runs
 
     def write(self) -> None:
+        self.behind = False
         runs = self.finished_runs()
         atomic_write_text(self.out_dir / "runs.json", json.dumps(runs, indent=1))
         rows, lpips_note = [], None
@@ -323,7 +334,8 @@ def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
     study = Study(specs, out_dir, args)
     try:
         runner.run(to_run, study.add, resume=args.resume or args.report_only)
-    finally:  # also after Ctrl-C: the plots of what finished
+    finally:  # also after Ctrl-C: the report and plots of what finished
+        study.write_if_behind()
         runs = [r for r in study.finished_runs() if r["status"] != "failed"]
         if runs:
             study.paths.update(write_kurtosis_gap_plots(runs, out_dir))

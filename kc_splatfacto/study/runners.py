@@ -24,7 +24,7 @@ from typing import Any, Callable, Sequence
 
 from kc_splatfacto.engine.signals import current_stop_handlers, install_stop_handlers, restore_handlers
 from kc_splatfacto.errors import UserError, import_optional
-from kc_splatfacto.study.runs import RunSpec, execute_run, write_returned_files
+from kc_splatfacto.study.runs import RunSpec, execute_run, is_finished, write_returned_files
 
 RAY_INSTALL = "pip install 'kc-splatfacto[cluster]'  (or: pip install 'ray>=2.9')"
 ResultCallback = Callable[[dict[str, Any]], None]
@@ -74,11 +74,12 @@ class Progress:
     run's time includes kernel compilation, so the estimate settles after a few. Until a run has trained here (a
     study resumed with ``--resume``), the mean is that of the reused runs' recorded wall times: the same study's
     runs, timed where they trained, which is a better guess than none for the hour the first new run takes.
+    ``to_reuse``: the runs already finished in their folders (``--resume``), which take no time, so are not left to do.
     """
 
-    def __init__(self, total: int, slots: int, stream=None):
-        self.total, self.slots = total, max(1, slots)
-        self.finished = self.failed = self.running = 0
+    def __init__(self, total: int, slots: int, stream=None, to_reuse: int = 0):
+        self.total, self.slots, self.to_reuse = total, max(1, slots), to_reuse
+        self.finished = self.failed = self.running = self.reused = 0
         self.trained_walls: list[float] = []
         self.reused_walls: list[float] = []
         self.stream = stream or sys.stderr
@@ -90,14 +91,15 @@ class Progress:
         self.running = max(0, self.running - 1)
         self.finished += 1
         self.failed += result["status"] == "failed"
+        self.reused += result["status"] == "reused"
         if result["status"] in ("trained", "resumed", "restarted"):
             self.trained_walls.append(result["wall_s"])
         elif result["status"] == "reused" and (wall := recorded_wall(result["records"])) is not None:
             self.reused_walls.append(wall)
 
     def eta(self) -> float | None:
-        left = self.total - self.finished
-        if left == 0:
+        left = self.total - self.finished - max(0, self.to_reuse - self.reused)
+        if left <= 0:
             return 0.0
         walls = self.trained_walls or self.reused_walls
         if not walls:
@@ -116,6 +118,11 @@ class Progress:
         print(self.line(), file=self.stream, flush=True)
 
 
+def count_finished(specs: Sequence[RunSpec]) -> int:
+    """How many of ``specs`` already hold their final evaluation (``--resume`` reuses them as they are)."""
+    return sum(is_finished(spec.run_dir, spec.max_steps) for spec in specs)
+
+
 def describe(result: dict[str, Any], spec: RunSpec) -> str:
     """One line on a finished run: its status, time and final metrics, or its error and folder."""
     if result["status"] == "failed":
@@ -132,7 +139,7 @@ class SerialRunner:
         self.stream = stream or sys.stderr
 
     def run(self, specs: Sequence[RunSpec], on_result: ResultCallback, *, resume: bool) -> None:
-        progress = Progress(len(specs), 1, self.stream)
+        progress = Progress(len(specs), 1, self.stream, to_reuse=count_finished(specs) if resume else 0)
         for spec in specs:
             progress.started()
             progress.print()
@@ -260,7 +267,7 @@ class RayRunner:
         task = ray.remote(_ray_execute).options(num_cpus=self.threads, num_gpus=self.gpus, max_retries=0)
         send_files = self.address is not None  # another machine may have run it
         by_ref = {task.remote(spec, resume, send_files, actor): spec for spec in specs}
-        progress = Progress(len(specs), slots, self.stream)
+        progress = Progress(len(specs), slots, self.stream, to_reuse=count_finished(specs) if resume else 0)
         pending = list(by_ref)
         last_print = 0.0
         try:

@@ -26,7 +26,7 @@ def _metric_rows(out):
     return sorted((r["method"], r["step"], r["psnr"], r["ssim"], r["lpips"]) for r in report.read_rows_csv(out / "evals.csv"))
 
 
-def test_resume_continues_an_interrupted_study(tmp_path, monkeypatch):
+def test_resume_continues_an_interrupted_study(tmp_path, monkeypatch, capsys):
     assert bench.log_spaced_steps(12, 4) == (1, 2, 5, 12)
     reference = tmp_path / "uninterrupted"
     assert _bench(reference) == 0
@@ -76,8 +76,13 @@ def test_resume_continues_an_interrupted_study(tmp_path, monkeypatch):
     # CPU resume is bit-identical, so the continued study reports exactly the uninterrupted study's numbers
     assert _metric_rows(out) == _metric_rows(reference)
 
-    # a third --resume reuses everything and appends nothing
+    # a third --resume reuses everything and appends nothing; the report is written once, not once per reused run
+    writes = []
+    monkeypatch.setattr(bench, "write_report", lambda *a, **k: writes.append(a) or report.write_report(*a, **k))
     assert _bench(out, ["--resume"]) == 0
+    assert len(writes) == 1 and len(writes[0][0]) == len(report.read_rows_csv(reference / "evals.csv"))
+    # both runs are in their folders: nothing is left to train from the first progress line on
+    assert "[kc-bench] 0/2 finished, 1 running, 1 queued; ETA 0m00s" in capsys.readouterr().err
     assert [r["status"] for r in json.loads((out / "runs.json").read_text())] == ["reused", "reused"]
     assert read_metrics(killed_dir / "metrics.jsonl") == records
     assert _metric_rows(out) == _metric_rows(reference)

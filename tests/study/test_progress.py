@@ -35,6 +35,20 @@ def test_a_resumed_study_estimates_from_the_reused_runs_until_one_trains_here():
     assert progress.line() == "[kc-bench] 3/6 finished, 0 running, 3 queued; ETA 7m30s"
 
 
+def test_runs_still_to_reuse_are_not_left_to_train():
+    # a resumed study of 6: 4 finished in their folders, 2 of them read so far; 2 runs are left to train, not 4
+    progress = Progress(total=6, slots=2, stream=io.StringIO(), to_reuse=4)
+    for result in (_reused(600.0), _reused(1200.0)):
+        progress.started()
+        progress.ended(result)
+    assert progress.eta() == 900.0  # 2 left at the mean 900 s, two at once
+    for result in (_reused(300.0), _reused(300.0)):  # the other two read: still 2 left, now at the mean 600 s
+        progress.ended(result)
+    assert progress.eta() == 600.0
+    progress.ended({"status": "trained", "wall_s": 100.0, "records": []})
+    assert progress.eta() == 50.0  # 1 left at the 100 s trained here, on one of two slots
+
+
 def test_failures_count_and_a_finished_study_needs_no_time():
     progress = Progress(total=2, slots=1, stream=io.StringIO())
     progress.ended({"status": "failed", "wall_s": 3.0, "records": []})
