@@ -235,7 +235,7 @@ class Study:
     """The results of a study's runs as they arrive, and its report in the runs' planned order (whatever order they
     finished in), rewritten after every run trained here, so an interrupted study leaves a report of what it finished.
     A run reused as it is joins the report with the next trained run or at the end (:meth:`write_if_behind`): a
-    resumed study reuses tens of runs in its first minutes, and a report per run took a core from the training."""
+    resumed study reuses tens of runs in its first minutes, and a report per run takes a core from the training."""
 
     def __init__(self, specs: Sequence[RunSpec], out_dir: Path, args: argparse.Namespace):
         self.specs, self.out_dir, self.args = list(specs), out_dir, args
