@@ -793,7 +793,7 @@ def write_study_report(runs: Path, out: Path, settings: StudySettings, data: Pat
         return 0
     argv = [sys.executable, "-m", "kc_splatfacto.cli.bench", *settings.bench_args(data, scenes, seeds, settings.methods),
             "--output-dir", str(out), "--runs-dir", str(runs), "--report-only"]
-    if len(settings.methods) > len(STUDY_METHODS):  # issue 56 asks for the extra arms against kc-splatfacto too
+    if settings.methods != STUDY_METHODS:  # issue 56 asks for the extra arms against kc-splatfacto too
         argv += ["--also-against", STUDY_METHODS[1]]
     # the tree first, the caller's paths kept after it (a dist-info there may be what registers this tree's methods)
     path = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
