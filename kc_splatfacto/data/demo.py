@@ -7,6 +7,12 @@ heavy-tailed like photographs'. Shading is a fixed per-face Lambert factor (view
 of 2x2 ray-cast samples at offsets 0.25/0.75 (pixel centres at +0.5) with bilinear texture lookups, so the images
 are exact functions of the scene, with no rasterizer involved.
 
+The same bytes on every CPU: the generator makes no BLAS call (numpy's ``@``, ``dot`` and ``linalg.norm`` run
+OpenBLAS kernels picked per CPU, whose summation orders differ: that alone made the v2 scene's pixels differ between
+AVX-512 and AVX2 machines), only elementwise IEEE operations (``+ - * /``, ``sqrt``, exactly rounded everywhere) on
+values that are snapped to a dyadic grid wherever a library function that may differ in its last bit (``sin``,
+``cos``, ``pow``, the FFT) made them, so that such a difference cannot reach the pixels (:func:`snap`).
+
 24 cameras on an arc in front of the scene look at its centre; even positions are train, odd are test (SPARS3R's
 alternation, 12/12). Seed points are exact surface points seen by random pixels of the train views, with their
 rendered colour, moved by isotropic Gaussian noise of ``point_noise`` (scene units).
@@ -37,15 +43,41 @@ from kc_splatfacto.render.projection import rotmat_to_quat
 from kc_splatfacto.settings import SEED_MAX, integer, range_violations, real, setting
 
 # Bump when the generator changes: it is part of the cache key, so stale scenes are never reused.
-DEMO_VERSION = 2  # 2: camera quaternions from render.projection.rotmat_to_quat (within 4e-16 of v1's)
+DEMO_VERSION = 3  # 3: no BLAS, snapped library values (the same bytes on every CPU); 2: rotmat_to_quat's quaternions
 MIN_SIZE = 8
 """the smallest demo image side in pixels"""
 TEXTURE_SIZE = 256
 TEXEL_SIZE = 1.0 / 40.0  # scene units per texel; a texture tile covers 6.4 units and repeats
 SUBSAMPLE_OFFSETS = (0.25, 0.75)
 RAY_EPS = 1e-6
-LIGHT_DIRECTION = np.array([0.4, -0.6, 0.7]) / np.linalg.norm([0.4, -0.6, 0.7])
+LIGHT_DIRECTION = np.array([0.4, -0.6, 0.7]) / math.sqrt(0.4 * 0.4 + 0.6 * 0.6 + 0.7 * 0.7)
 SKY_RGB = np.array([0.62, 0.72, 0.85])
+
+
+
+
+def snap(values, bits: int):
+    """``values`` rounded to multiples of 2^-bits: exact operations (a power-of-two scale, round-half-even), so a
+    value a library function computed 1 ulp differently on another CPU lands on the same grid point unless it lies
+    within that ulp of a midpoint (a chance of about 2^(bits-52) per value)."""
+    scale = float(2**bits)
+    return np.round(np.asarray(values, np.float64) * scale) / scale
+
+
+#: grids for library results: trigonometry of poses (~1e2 values, 2^-32: ~1e-8 chance of a flip in a scene) and
+#: the textures (~1e6 values after the FFT, 2^-20 = 1e-6 of the colour range: ~2e-4 chance)
+POSE_BITS = 32
+TEXTURE_BITS = 20
+
+
+def dot3(vectors: np.ndarray, vector: np.ndarray) -> np.ndarray:
+    """[K,3] rows dotted with one [3] vector, elementwise in a fixed order (not BLAS: see the module docstring)."""
+    return vectors[..., 0] * vector[0] + vectors[..., 1] * vector[1] + vectors[..., 2] * vector[2]
+
+
+def norm3(vector: np.ndarray) -> float:
+    """Euclidean norm of a [3] vector, without BLAS."""
+    return math.sqrt(float(vector[0] * vector[0] + vector[1] * vector[1] + vector[2] * vector[2]))
 
 
 @dataclass
@@ -71,7 +103,7 @@ class Box:
     @property
     def rotation(self) -> np.ndarray:
         """[3,3] box-to-world rotation (columns are the box axes in world)."""
-        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        c, s = snap([math.cos(self.yaw), math.sin(self.yaw)], POSE_BITS)
         return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
@@ -110,7 +142,7 @@ def dead_leaves_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE, num_
     # shapes end up on top, as in the dead-leaves model seen from above.
     r_min, r_max = 2.0, size / 5.0
     u = rng.uniform(size=num_shapes)
-    radii = np.sort((r_min**-2 - u * (r_min**-2 - r_max**-2)) ** -0.5)[::-1]
+    radii = np.sort(snap((r_min**-2 - u * (r_min**-2 - r_max**-2)) ** -0.5, POSE_BITS))[::-1]
     for radius in radii:
         cx, cy = rng.uniform(0, size, size=2)
         colour = palette[rng.integers(len(palette))] * rng.uniform(0.7, 1.15) + rng.normal(0, 0.04, 3)
@@ -119,7 +151,7 @@ def dead_leaves_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE, num_
         xs = np.arange(int(cx) - r, int(cx) + r + 1)
         dy, dx = ys[:, None] + 0.5 - cy, xs[None, :] + 0.5 - cx
         if rng.uniform() < 0.6:
-            inside = dx**2 + dy**2 <= radius**2
+            inside = dx * dx + dy * dy <= radius * radius
         else:
             aspect = rng.uniform(0.3, 1.0)
             inside = (np.abs(dx) <= radius) & (np.abs(dy) <= radius * aspect)
@@ -128,7 +160,7 @@ def dead_leaves_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE, num_
     noise = np.stack([pink_noise(rng, size) for _ in range(3)], axis=-1)
     lum = pink_noise(rng, size)[..., None]
     image = image + 0.05 * noise + 0.06 * lum
-    return np.clip(image, 0.0, 1.0)
+    return snap(np.clip(image, 0.0, 1.0), TEXTURE_BITS)
 
 
 def sample_texture(texture: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -176,9 +208,9 @@ def look_at_c2w(
 ) -> np.ndarray:
     """[4,4] camera-to-world in OpenCV axes (x right, y down, z forward) looking from ``eye`` at ``target``."""
     forward = target - eye
-    forward = forward / np.linalg.norm(forward)
+    forward = forward / norm3(forward)
     right = np.cross(forward, np.asarray(world_up, np.float64))
-    right = right / np.linalg.norm(right)
+    right = right / norm3(right)
     down = np.cross(forward, right)
     c2w = np.eye(4)
     c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, down, forward, eye
@@ -192,7 +224,8 @@ def arc_cameras(num_cameras: int, width: int, height: int) -> tuple[np.ndarray, 
     c2ws = []
     for i, angle in enumerate(angles):
         radius = 4.2 + 0.3 * math.cos(3.0 * angle)
-        eye = np.array([radius * math.sin(angle), -radius * math.cos(angle), 1.5 + 0.25 * math.sin(2.0 * angle + i)])
+        eye = snap([radius * math.sin(angle), -radius * math.cos(angle), 1.5 + 0.25 * math.sin(2.0 * angle + i)],
+                   POSE_BITS)
         c2ws.append(look_at_c2w(eye, target))
     focal = 0.9 * width  # about 58 degrees horizontal field of view
     return np.stack(c2ws), np.array([focal, focal, width / 2.0, height / 2.0])
@@ -204,7 +237,8 @@ def arc_cameras(num_cameras: int, width: int, height: int) -> tuple[np.ndarray, 
 
 
 def _rotate(vectors: np.ndarray, rot: np.ndarray) -> np.ndarray:
-    """[K,3] vectors times ``rot`` [3,3] (``rot @ v`` each), by broadcasting: tiny BLAS calls are slow on a busy CPU."""
+    """[K,3] vectors times ``rot`` [3,3] (``rot @ v`` each), by broadcasting: no BLAS (its
+    kernels, and so its rounding, depend on the CPU), which is also faster than tiny BLAS calls on a busy CPU."""
     return vectors[:, 0:1] * rot[:, 0] + vectors[:, 1:2] * rot[:, 1] + vectors[:, 2:3] * rot[:, 2]
 
 
@@ -239,9 +273,9 @@ def _intersect(primitive: Plane | Box, origins: np.ndarray, directions: np.ndarr
 def _surface(primitive: Plane | Box, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Texture coordinates (u [K], v [K]) and outward normals [K,3] at surface points [K,3]."""
     if isinstance(primitive, Plane):
-        return points @ primitive.u_axis, points @ primitive.v_axis, np.broadcast_to(primitive.normal, points.shape)
+        return dot3(points, primitive.u_axis), dot3(points, primitive.v_axis), np.broadcast_to(primitive.normal, points.shape)
     rot = primitive.rotation
-    local = (points - primitive.center) @ rot
+    local = _rotate(points - primitive.center, rot.T)
     axis = np.argmax(np.abs(local) / primitive.half_size, axis=1)
     rows = np.arange(len(points))
     sign = np.sign(local[rows, axis])
@@ -250,7 +284,7 @@ def _surface(primitive: Plane | Box, points: np.ndarray) -> tuple[np.ndarray, np
     # The two in-face axes, shifted per face so that the faces do not repeat each other's texture.
     u = local[rows, (axis + 1) % 3] + 1.7 * axis + 0.9 * (sign > 0)
     v = local[rows, (axis + 2) % 3] + 1.3 * axis
-    return u, v, normal_local @ rot.T
+    return u, v, _rotate(normal_local, rot)
 
 
 def cast_rays(scene: DemoScene, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -267,7 +301,7 @@ def cast_rays(scene: DemoScene, origins: np.ndarray, directions: np.ndarray) -> 
         points = _rows(origins, idx) + best_t[idx, None] * directions[idx]
         u, v, normal = _surface(primitive, points)
         colour = sample_texture(scene.textures[primitive.texture], u, v)
-        shade = 0.55 + 0.45 * np.clip(normal @ LIGHT_DIRECTION, 0.0, 1.0)
+        shade = 0.55 + 0.45 * np.clip(dot3(normal, LIGHT_DIRECTION), 0.0, 1.0)
         rgb[idx] = colour * shade[:, None]
     return best_t, rgb
 
@@ -280,7 +314,8 @@ def camera_rays(c2w: np.ndarray, intrinsics: np.ndarray, pixels: np.ndarray) -> 
     fx, fy, cx, cy = intrinsics
     d_cam = np.stack([(pixels[:, 0] - cx) / fx, (pixels[:, 1] - cy) / fy, np.ones(len(pixels))], axis=1)
     d_world = _rotate(d_cam, c2w[:3, :3])
-    d_world /= np.sqrt((d_world**2).sum(axis=1, keepdims=True))
+    d_world /= np.sqrt(d_world[:, 0:1] * d_world[:, 0:1] + d_world[:, 1:2] * d_world[:, 1:2]
+                       + d_world[:, 2:3] * d_world[:, 2:3])
     return c2w[None, :3, 3].copy(), d_world
 
 
@@ -300,7 +335,7 @@ def render_view(
     pixels = np.stack([jj.ravel() + 0.5, ii.ravel() + 0.5], axis=1)
     origins, dirs = camera_rays(c2w, intrinsics, pixels)
     t, _ = cast_rays(scene, origins, dirs)
-    depth = (t * (dirs @ c2w[:3, 2])).reshape(height, width)
+    depth = (t * dot3(dirs, c2w[:3, 2])).reshape(height, width)
     return image, depth
 
 
@@ -354,7 +389,7 @@ def write_colmap_text_model(
     lines = ["# IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, then an empty POINTS2D line"]
     for image_id, (name, c2w) in enumerate(zip(names, c2ws), start=1):
         rot_cw = c2w[:3, :3].T
-        t_cw = -rot_cw @ c2w[:3, 3]
+        t_cw = -_rotate(c2w[None, :3, 3], rot_cw)[0]
         q = rotmat_to_quat(torch.from_numpy(np.asarray(rot_cw, np.float64))[None])[0].numpy()
         lines.append(
             " ".join([str(image_id), *(repr(float(v)) for v in q), *(repr(float(v)) for v in t_cw), "1", name])

@@ -56,7 +56,8 @@ def rotmat_to_quat(rotmats: torch.Tensor) -> torch.Tensor:
     )  # [N, 4 candidates, 4]
     choice = torch.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1).argmax(-1)
     q = candidates[torch.arange(r.shape[0]), choice]
-    q = q / q.norm(dim=-1, keepdim=True)
+    # the norm written out: a reduction's order (and so its last bit) follows the CPU's vector width
+    q = q / torch.sqrt(q[:, 0:1] * q[:, 0:1] + q[:, 1:2] * q[:, 1:2] + q[:, 2:3] * q[:, 2:3] + q[:, 3:4] * q[:, 3:4])
     return torch.where(q[:, :1] < 0, -q, q)
 
 

@@ -186,12 +186,12 @@ def test_the_scene_fields_are_written_once():
 
 @pytest.mark.parametrize(
     "values, key",  # the keys the code before the merge gave: cached scenes keep their folder
-    [({}, "demo-v2-seed0-160x120-cams24-pts2000-noise0.01"),
-     ({"width": 64, "height": 48, "num_points": 300}, "demo-v2-seed0-64x48-cams24-pts300-noise0.01"),
+    [({}, "demo-v3-seed0-160x120-cams24-pts2000-noise0.01"),
+     ({"width": 64, "height": 48, "num_points": 300}, "demo-v3-seed0-64x48-cams24-pts300-noise0.01"),
      ({"seed": 3, "width": 33, "height": 17, "num_cameras": 3, "num_points": 7, "point_noise": 0.0},
-      "demo-v2-seed3-33x17-cams3-pts7-noise0"),
+      "demo-v3-seed3-33x17-cams3-pts7-noise0"),
      ({"width": 40, "height": 30, "num_cameras": 4, "num_points": 50, "point_noise": 1.25e-7},
-      "demo-v2-seed0-40x30-cams4-pts50-noise1.25e-07")],
+      "demo-v3-seed0-40x30-cams4-pts50-noise1.25e-07")],
 )
 def test_the_cache_key_is_unchanged(values, key):
     assert DemoSceneSpec(**values).key() == key
@@ -200,14 +200,61 @@ def test_the_cache_key_is_unchanged(values, key):
 
 
 def test_the_generated_scene_is_unchanged(demo_parser, tmp_path):
-    """Digests of scenes the generator wrote before the spec and the config shared their fields."""
-    assert scene_digest(demo_parser.config.data) == "242bbc160c166c49"  # the default scene, 160x120
+    """Digests of the v3 scenes: the same on every CPU kind (the generator makes no BLAS call and snaps library
+    results, kc_splatfacto/data/demo.py), checked on Zen 4 (AVX-512) and as an AVX2 and an SSE3 machine would run it
+    (test_the_scene_does_not_depend_on_the_cpu_kind); v2's pixels differed between AVX-512 and AVX2 machines."""
+    assert scene_digest(demo_parser.config.data) == "66dff9767e122164"  # the default scene, 160x120
     small = DemoDataParserConfig(demo_cache_dir=tmp_path, width=40, height=30, num_cameras=4, num_points=50,
                                  point_noise=0.1)
     folder = small.setup().config.data
-    assert folder == tmp_path / "demo-v2-seed0-40x30-cams4-pts50-noise0.1"
-    assert scene_digest(folder) == "7cf36467099608a2"
-    assert json.loads((folder / "demo.json").read_text()) == {"version": 2, **dataclasses.asdict(small.spec())}
+    assert folder == tmp_path / "demo-v3-seed0-40x30-cams4-pts50-noise0.1"
+    assert scene_digest(folder) == "1495b2ee46dfb6ed"
+    assert json.loads((folder / "demo.json").read_text()) == {"version": 3, **dataclasses.asdict(small.spec())}
+
+
+#: what another CPU kind changes, forced on this one: OpenBLAS's kernels (the v2 scene's cause: its pixels followed
+#: them), numpy's dispatched SIMD loops, torch's vector width; docs/architecture.md ("Testing") runs the suite so
+AS_OTHER_CPU = {
+    "x86_64": [{"OPENBLAS_CORETYPE": "Prescott", "NPY_DISABLE_CPU_FEATURES": "X86_V3 X86_V4 AVX512_ICL AVX512_SPR",
+                "ATEN_CPU_CAPABILITY": "default"},
+               {"OPENBLAS_CORETYPE": "Haswell", "ATEN_CPU_CAPABILITY": "avx2"}],
+    "aarch64": [{"OPENBLAS_CORETYPE": "ARMV8", "ATEN_CPU_CAPABILITY": "default"}],
+}
+
+DIGEST_SCRIPT = """
+import hashlib, sys
+from pathlib import Path
+from kc_splatfacto.data.demo import DemoDataParserConfig
+from kc_splatfacto.data.images import read_image
+folder = DemoDataParserConfig(demo_cache_dir=Path(sys.argv[1]), width=40, height=30, num_cameras=4, num_points=50,
+                              point_noise=0.1).setup().config.data
+digest = hashlib.sha256()
+for path in sorted(p for p in folder.rglob("*") if p.is_file()):
+    digest.update(str(path.relative_to(folder)).encode())
+    digest.update(read_image(path).tobytes() if path.suffix == ".png" else path.read_bytes())
+print(digest.hexdigest()[:16])
+"""
+
+
+@pytest.mark.parametrize("index", [0, 1])
+def test_the_scene_does_not_depend_on_the_cpu_kind(tmp_path, index):
+    """The small scene generated as another CPU kind would generate it (in a fresh process: the libraries read these
+    variables when they load) has the digest this process gives: v2's (7cf36467099608a2 on AVX-512) became
+    e5123973609d9c3b under OPENBLAS_CORETYPE=Haswell, exactly what an AVX2 machine wrote."""
+    import os
+    import platform
+    import subprocess
+    import sys
+
+    kinds = AS_OTHER_CPU.get(platform.machine())
+    if kinds is None or index >= len(kinds):
+        pytest.skip(f"no emulated CPU kind {index} known for {platform.machine()}")
+    env = {**os.environ, **kinds[index]}
+    out = subprocess.run([sys.executable, "-c", DIGEST_SCRIPT, str(tmp_path / "other")], env=env, text=True,
+                         capture_output=True, check=True).stdout.strip()
+    here = DemoDataParserConfig(demo_cache_dir=tmp_path / "here", width=40, height=30, num_cameras=4, num_points=50,
+                                point_noise=0.1).setup().config.data
+    assert out == scene_digest(here) == "1495b2ee46dfb6ed"
 
 
 #: the dataparser part of a config.yml the code before the merge wrote (kc-train splatfacto --data demo demo ...)
