@@ -45,7 +45,7 @@ from torch import Tensor, nn
 from kc_splatfacto import backend
 from kc_splatfacto.losses import _fused_frequency as fused
 from kc_splatfacto.losses._frequency_autograd import Moments, level_moments, weighted_band_l1
-from kc_splatfacto.losses.wavelets import WaveletCoeffs, dwt2, supported_levels
+from kc_splatfacto.losses.wavelets import WaveletCoeffs, dropped_levels_phrase, dwt2, supported_levels
 from kc_splatfacto.settings import check_settings, integer, real, setting
 
 WaveName = Literal["haar", "db1", "db2", "db3", "db4", "db5", "db6", "db7", "db8", "db9", "db10"]
@@ -516,7 +516,10 @@ class FrequencyLoss(nn.Module):
         config = dataclasses.replace(config if config is not None else FrequencyLossConfig(), **settings)
         check_settings(config, "FrequencyLoss")
         self.config = config
-        self._warned_dropped_levels = False
+        #: a warning (once per image size) when an image is too small for the requested levels; a caller that says it
+        #: in its own terms (kc-train's model names the training resolution) sets it False
+        self.warn_dropped_levels = True
+        self._warned_sizes: set[tuple[int, int]] = set()
         #: forward raises ValueError on a NaN/Inf ``pred`` (one host synchronisation on CUDA); a training loop that
         #: checks its whole step once after backward (kc-train's trainer) sets it False
         self.check_finite = True
@@ -547,19 +550,20 @@ class FrequencyLoss(nn.Module):
                               warn_dropped_levels=False)
 
     def _warn_dropped_levels_once(self, image: Tensor) -> None:
-        """One warning per loss (i.e. per training run) when an image is too small for the requested levels, not one
-        per image size: a resolution schedule changes the size several times."""
-        if self._warned_dropped_levels or image.dim() != 4 or min(image.shape[-2:]) == 0:
+        """One warning per image size (W x H) too small for the requested levels, none with
+        ``warn_dropped_levels`` False."""
+        if not self.warn_dropped_levels or image.dim() != 4 or min(image.shape[-2:]) == 0:
             return
-        height, width = image.shape[-2:]
+        height, width = (int(n) for n in image.shape[-2:])
+        if (width, height) in self._warned_sizes:
+            return
         wave, levels = self.config.wave, self.config.wavelet_levels
         kept = supported_levels(height, width, wave, levels)
         if kept < levels:
-            self._warned_dropped_levels = True
+            self._warned_sizes.add((width, height))
             warnings.warn(
-                f"FrequencyLoss: a {height}x{width} image supports only {kept} of the {levels} requested "
-                f"{wave} levels; levels an image is too small for are left out (said once, for the first such "
-                "size)",
+                f"FrequencyLoss: a {width}x{height} image (W x H) supports only {kept} of the {levels} requested "
+                f"{wave} levels; {dropped_levels_phrase(levels - kept, levels)} left out at that size",
                 stacklevel=3,
             )
 

@@ -310,6 +310,14 @@ def supported_levels(height: int, width: int, wave: str = "db3", levels: int = 3
     return min(levels, dwt_max_level(min(height, width), filter_length(wave)))
 
 
+def dropped_levels_phrase(dropped: int, levels: int) -> str:
+    """'the coarsest level is', 'the 2 coarsest levels are', 'all 3 levels are': the subject of a warning's
+    "... left out" for ``dropped`` of ``levels`` levels."""
+    if dropped >= levels:
+        return f"all {levels} levels are" if levels > 1 else "the level is"
+    return "the coarsest level is" if dropped == 1 else f"the {dropped} coarsest levels are"
+
+
 def dwt2(x: Tensor, wave: str = "db3", levels: int = 3, mode: str = "symmetric", *, warn: bool = True) -> WaveletCoeffs:
     """Multi-level 2D DWT of x [B, C, H, W]; equals `pywt.wavedec2(x, wave, mode=mode, level=levels)` reversed.
 

@@ -11,6 +11,7 @@ schedule in 600 steps, for short CPU runs.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -19,6 +20,7 @@ import torch.nn.functional as F
 
 from kc_splatfacto.data.outputs import Cameras
 from kc_splatfacto.losses.frequency import FrequencyLoss, FrequencyLossConfig, WaveletBands, mean_band_kurtosis
+from kc_splatfacto.losses.wavelets import dropped_levels_phrase, supported_levels
 from kc_splatfacto.metrics import mean_ssim, psnr
 from kc_splatfacto.model.gaussians import init_gaussian_params
 from kc_splatfacto.model.image_loss import ImageLoss
@@ -338,6 +340,7 @@ class SplatfactoModel(torch.nn.Module):
         self._frequency_loss: FrequencyLoss | None = None
         self._kurtosis_probe: FrequencyLoss | None = None
         self._image_loss: ImageLoss | None = None
+        self._noted_sizes: set[tuple[int, int]] = set()  # training sizes (W, H) whose dropped levels were warned of
 
     # ----------------------------------------------------------------------------------------------- the step
     def set_step(self, step: int) -> None:
@@ -539,7 +542,40 @@ class SplatfactoModel(torch.nn.Module):
             # a non-finite render is caught once per step with the loss and gradients (TrainingState._problem), not
             # by a check of its own: each is a host synchronisation on CUDA
             self._frequency_loss.check_finite = False
+            # too small an image for the DWT's levels is said here, in the resolution schedule's terms
+            # (:meth:`_warn_dropped_levels`)
+            self._frequency_loss.warn_dropped_levels = False
         return self._frequency_loss
+
+    def _warn_dropped_levels(self, height: int, width: int, full_height: int, full_width: int) -> None:
+        """Once per training size: the frequency loss's DWT leaves out levels a (height x width) training image is
+        too small for; the warning names the size W x H, the resolution schedule's fraction of the full
+        (full_width x full_height) image, and the step from which all levels fit (if any)."""
+        settings = self.config.frequency
+        wave, levels = settings.wave, settings.wavelet_levels
+        kept = supported_levels(height, width, wave, levels)
+        if kept >= levels or (width, height) in self._noted_sizes:
+            return
+        self._noted_sizes.add((width, height))
+        d = self.get_downscale_factor()
+        if d > 1:
+            where = f"while training at 1/{d} resolution ({width}x{height} of {full_width}x{full_height})"
+        else:
+            where = f"at {width}x{height}"
+        until = ""
+        finer = d // 2
+        while finer >= 1:
+            if supported_levels(full_height // finer, full_width // finer, wave, levels) == levels:
+                step = (self.config.num_downscales - finer.bit_length() + 1) * self.schedule.resolution_schedule
+                size = "full resolution" if finer == 1 else f"1/{finer} resolution"
+                until = f" until step {step} ({size}, {full_width // finer}x{full_height // finer})"
+                break
+            finer //= 2
+        warnings.warn(
+            f"FrequencyLoss: {where} a {wave} DWT supports only {kept} of the {levels} requested levels; "
+            f"{dropped_levels_phrase(levels - kept, levels)} left out{until}",
+            stacklevel=3,
+        )
 
     def wavelet_target_key(self, batch: dict[str, Any]) -> tuple[int, int] | None:
         """Where the frequency loss caches this batch's GT target: (training image, resolution) when the composited
@@ -563,6 +599,8 @@ class SplatfactoModel(torch.nn.Module):
                 optionally ``mask`` [H, W, 1] (bool, True = use the pixel).
         """
         pred_img, gt_img, _ = self._masked_pair(outputs, batch)
+        if self.frequency_loss is not None:
+            self._warn_dropped_levels(*pred_img.shape[:2], *batch["image"].shape[:2])
         loss_dict = self.image_loss(pred_img, gt_img, key=self.wavelet_target_key(batch))
         if self.config.use_scale_regularization:
             if self.step % SCALE_REG_EVERY == 0:
@@ -631,9 +669,11 @@ class SplatfactoModel(torch.nn.Module):
         """
         if not isinstance(image, WaveletBands):
             if self._kurtosis_probe is None:
-                # the loss itself, or (every weight zero) a module with the same DWT settings: either warns once per
-                # run when the image is too small for the levels
+                # the loss itself (which get_loss_dict has warned about a too small image for), or (every weight
+                # zero: no wavelet loss to warn about) a silent module with the same DWT settings; either way a
+                # level an image is too small for is absent from the logged values
                 self._kurtosis_probe = self.frequency_loss or self.config.frequency.setup()
+                self._kurtosis_probe.warn_dropped_levels = False
             with torch.no_grad():
                 image = self._kurtosis_probe.bands(_bchw(image.detach().float()), covariance=False)
         return mean_band_kurtosis(image)

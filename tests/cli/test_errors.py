@@ -237,8 +237,9 @@ def test_zero_seed_points_say_so_with_the_count(castle_p30, tmp_path, capsys):
 
 
 def test_a_warning_is_one_line_naming_the_tool(tmp_path, capsys):
-    """What a new user sees (issue 37, category 8): the demo's note that a 30x40 image holds only 2 of the 3 db3
-    levels is one line `kc-train: warning: ...`, not Python's file:line and source line."""
+    """What a new user sees (issue 37, category 8): the demo's note that its 40x30 images at the start (1/4 of
+    160x120, named W x H: issue 68) hold only 2 of the 3 db3 levels is one line `kc-train: warning: ...`, not
+    Python's file:line and source line."""
     import warnings
 
     from kc_splatfacto.cli.train import entrypoint
@@ -252,5 +253,7 @@ def test_a_warning_is_one_line_naming_the_tool(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 0
     lines = [line for line in err.splitlines() if "supports only" in line]
-    assert len(lines) == 1 and lines[0].startswith("kc-train: warning: FrequencyLoss: a 30x40 image supports only 2"), err
+    assert len(lines) == 1 and lines[0].startswith(
+        "kc-train: warning: FrequencyLoss: while training at 1/4 resolution (40x30 of 160x120) a db3 DWT supports only "
+        "2 of the 3 requested levels; the coarsest level is left out until step 3000 (1/2 resolution, 80x60)"), err
     assert ".py:" not in err and "warnings.warn" not in err

@@ -1,5 +1,7 @@
 """Frequency losses against independent numpy / scipy / PyWavelets computations, and FrequencyLoss's contract."""
 
+import warnings
+
 import numpy as np
 import pytest
 import pywt
@@ -428,3 +430,22 @@ def test_compiled_wavelet_l1_gradient_is_torch_l1_loss_including_ties():
         results.append((value.detach(), x.grad))
     torch.testing.assert_close(results[0][0], results[1][0], rtol=1e-6, atol=0)
     torch.testing.assert_close(results[0][1], results[1][1], rtol=0, atol=1e-7)
+
+
+def test_too_small_an_image_is_said_once_per_size_w_x_h():
+    """Issue 68: FrequencyLoss names the image W x H, once per size (a second visit of a size is silent), and not at
+    all with ``warn_dropped_levels`` off (kc-train's model says it in its resolution schedule's terms)."""
+    loss = FrequencyLoss()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for height, width in ((12, 40), (12, 40), (24, 40), (48, 40), (24, 40)):
+            loss(torch.rand(1, 3, height, width), loss.prepare_target(torch.rand(1, 3, height, width)))
+        quiet = FrequencyLoss()
+        quiet.warn_dropped_levels = False
+        quiet.prepare_target(torch.rand(1, 3, 12, 40))
+    assert [str(w.message) for w in caught] == [
+        "FrequencyLoss: a 40x12 image (W x H) supports only 1 of the 3 requested db3 levels; the 2 coarsest levels "
+        "are left out at that size",
+        "FrequencyLoss: a 40x24 image (W x H) supports only 2 of the 3 requested db3 levels; the coarsest level is "
+        "left out at that size",
+    ]

@@ -220,3 +220,65 @@ def test_views_cap_the_sh_coefficients_the_model_holds_and_renders(demo_train, v
     rgb.sum().backward()
     if degree > 0:
         assert model.features_rest.grad is not None and model.features_rest.grad.abs().sum() > 0
+
+
+def _train_steps(model, dataset, steps, **batch_extra):
+    """model.set_step / get_outputs / get_loss_dict of training image 0 at each step in ``steps``."""
+    model.train()
+    for step in steps:
+        model.set_step(step)
+        out = model.get_outputs(dataset.cameras[0])
+        model.get_loss_dict(out, {"image": dataset.image_uint8(0), "image_idx": 0, **batch_extra})
+    return out
+
+
+def test_splatfacto_neither_warns_of_nor_transforms_for_a_wavelet_loss_it_does_not_have(demo_train, monkeypatch):
+    """Issue 68: splatfacto (every frequency weight zero) at 1/4 resolution (16x12, too small for 3 db3 levels) says
+    nothing about a FrequencyLoss and runs no DWT in its loss or its per-step metrics; only the logging steps'
+    band kurtosis (the baseline of kc-bench's kurtosis-gap plots) transforms, silently."""
+    import warnings
+
+    import kc_splatfacto.losses.frequency as frequency
+    import kc_splatfacto.losses.wavelets as wavelets
+
+    outputs, dataset = demo_train
+    model = SplatfactoModelConfig(num_downscales=2).setup(
+        scene_scale=outputs.scene_scale, num_train_data=len(dataset),
+        seed_points=(outputs.points3d_xyz, outputs.points3d_rgb))
+    calls = []
+    for module in (frequency, wavelets):
+        real = module.dwt2
+        monkeypatch.setattr(module, "dwt2", lambda *a, _real=real, **k: calls.append(a[0].shape) or _real(*a, **k))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = _train_steps(model, dataset, range(3))
+        assert model.get_downscale_factor() == 4 and out["rgb"].shape == (12, 16, 3)
+        batch = {"image": dataset.image_uint8(0), "image_idx": 0}
+        with torch.no_grad():
+            model.get_metrics_dict(out, batch)
+        assert calls == []
+        with torch.no_grad():
+            logged = model.get_metrics_dict(out, batch, with_kurtosis=True)
+    assert len(logged["kurtosis_render"]) == 3  # the one level 16x12 holds
+    assert [str(w.message) for w in caught] == []
+
+
+def test_kc_splatfacto_names_the_training_size_w_x_h_once_per_size(demo_train):
+    """Issue 68: the warning about levels left out names the size trained at (W x H) as a fraction of the scene's,
+    and the step from which every level fits; once per size, not once per step."""
+    import warnings
+
+    outputs, dataset = demo_train  # 64x48
+    model = SplatfactoModelConfig(num_downscales=2, steps_scale=0.001, frequency=FrequencyLossConfig()).setup(
+        scene_scale=outputs.scene_scale, num_train_data=len(dataset),
+        seed_points=(outputs.points3d_xyz, outputs.points3d_rgb))
+    period = model.schedule.resolution_schedule
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        _train_steps(model, dataset, [0, 1, period, period + 1, 2 * period, 2 * period + 1])
+    assert [str(w.message) for w in caught] == [
+        "FrequencyLoss: while training at 1/4 resolution (16x12 of 64x48) a db3 DWT supports only 1 of the 3 "
+        f"requested levels; the 2 coarsest levels are left out until step {2 * period} (full resolution, 64x48)",
+        "FrequencyLoss: while training at 1/2 resolution (32x24 of 64x48) a db3 DWT supports only 2 of the 3 "
+        f"requested levels; the coarsest level is left out until step {2 * period} (full resolution, 64x48)",
+    ]
