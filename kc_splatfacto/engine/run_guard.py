@@ -12,6 +12,11 @@
   checkpoint with the new settings in a new run folder;
 - a checkpoint that does not fit the config (another method or SH degree: ``checkpoints.check_checkpoint_fits``).
 
+A run whose recorded scene no longer exists (the folder moved or was deleted) is the same run on the scene the command
+names instead (``--data NEW_PATH``), provided that scene's cameras give the dataparser transform the run recorded in
+its ``dataparser_transforms.json`` (:func:`check_moved_scene`, once the scene has loaded); ``config.yml`` then records
+the new path.
+
 :func:`plan_run` also resolves the run's dataparser, once (``auto`` detected from the scene, the scene path handed to
 it): :attr:`RunPlan.dataparser` is what the data manager loads, what the resume checks compare and what ``config.yml``
 records (:func:`recorded_dataparser`), so the scene path has one holder from then on: that config's ``data``.
@@ -24,14 +29,18 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+import torch
+
 from kc_splatfacto.atomic import atomic_write_text
-from kc_splatfacto.data.base import DataParserConfig
+from kc_splatfacto.data.base import DataParserConfig, read_dataparser_transforms
 from kc_splatfacto.data.demo import DemoDataParserConfig
 from kc_splatfacto.data.detect import DEMO_NAME, AutoDataParserConfig
 from kc_splatfacto.engine.checkpoints import (
@@ -65,6 +74,8 @@ class RunPlan:
         checkpoint: the loaded checkpoint payload to restore, or None.
         checkpoint_path: its file, or None.
         trimmed_records: metrics.jsonl records dropped because they were written after the checkpoint.
+        moved_scene: the scene the run recorded, when it no longer exists and ``dataparser`` names another in its
+            place (a resume of the same run: :func:`check_moved_scene` compares the two once the scene has loaded).
     """
 
     dataparser: DataParserConfig
@@ -72,6 +83,7 @@ class RunPlan:
     checkpoint: dict[str, Any] | None = None
     checkpoint_path: Path | None = None
     trimmed_records: int = 0
+    moved_scene: Path | None = None
 
 
 def check_output_dir(config: TrainerConfig) -> None:
@@ -133,6 +145,40 @@ def scene_of(parser: DataParserConfig | None) -> str | None:
     if str(parser.data) == DEMO_NAME and isinstance(parser, (DemoDataParserConfig, AutoDataParserConfig)):
         return DEMO_NAME
     return str(Path(parser.data).expanduser().resolve())  # resolved: a scene reached through a symlink is the same
+
+
+def moved_scene(stored_parser: DataParserConfig, current_parser: DataParserConfig) -> Path | None:
+    """The scene ``stored_parser`` reads, when it no longer exists (moved or deleted) and ``current_parser``, of the
+    same dataparser, names another scene that does; else None (the generated demo scene never moves)."""
+    stored_scene, current_scene = scene_of(stored_parser), scene_of(current_parser)
+    if DEMO_NAME in (stored_scene, current_scene) or stored_scene == current_scene:
+        return None
+    if type(stored_parser) is not type(current_parser) or Path(stored_parser.data).expanduser().exists():
+        return None
+    return Path(stored_parser.data) if Path(current_parser.data).expanduser().exists() else None
+
+
+def check_moved_scene(datamanager: DataManager, plan: RunPlan) -> None:
+    """A resume on a scene named in place of the run's moved one (:attr:`RunPlan.moved_scene`) must be on the same
+    scene: its cameras give the dataparser transform (rotation, centre, scale) the run recorded in its
+    ``dataparser_transforms.json``; a :class:`ResumeError` naming both scenes when they do not (nothing written)."""
+    if plan.moved_scene is None or plan.run_dir is None:
+        return
+    recorded_path = plan.run_dir / "dataparser_transforms.json"
+    if not recorded_path.is_file():  # nothing recorded to compare with
+        return
+    recorded = read_dataparser_transforms(recorded_path)
+    outputs = datamanager.train_outputs
+    transform = np.asarray(torch.as_tensor(outputs.dataparser_transform, dtype=torch.float64).cpu().numpy())[:3, :4]
+    if np.allclose(transform, recorded.transform, rtol=1e-9, atol=1e-9) and math.isclose(
+            float(outputs.dataparser_scale), recorded.scale, rel_tol=1e-9):
+        return
+    raise ResumeError(
+        f"--data {plan.dataparser.data} is not the scene of the run in {plan.run_dir}: its cameras give another "
+        f"dataparser transform than the run's {recorded_path} (the run trained on {plan.moved_scene}, which no longer "
+        f"exists). Pass --data with the run's scene where it is now, or {OVERRIDE_FLAG} to continue from its checkpoint "
+        "on this scene in a new run folder"
+    )
 
 
 def differences(stored: TrainerConfig, current: TrainerConfig, parser_settings: bool = False,
@@ -265,11 +311,15 @@ def plan_run(config: TrainerConfig, map_location: Any = "cpu") -> RunPlan:
         )
     run_dir = path.parent.parent
     stored_path = run_dir / "config.yml"
+    moved_from: Path | None = None
     if path.parent.name != CHECKPOINT_DIR or not stored_path.is_file():
         problems = [f"{path.parent} is not the nerfstudio_models folder of a run with a config.yml"]
     else:
         stored = read_config_file(stored_path, type(config))
         stored_parser = comparable_dataparser(stored)
+        moved_from = moved_scene(stored_parser, dataparser)
+        if moved_from is not None:  # the scene named here stands for the run's vanished one (compared once loaded)
+            stored_parser = dataclasses.replace(stored_parser, data=dataparser.data)
         problems = differences(stored, config, stored_parser=stored_parser, current_parser=dataparser)
         if problems and not config.resume_from_other_run:
             if stored.method_name != config.method_name:  # a misspelt method_name, not another run's folder
@@ -312,7 +362,7 @@ def plan_run(config: TrainerConfig, map_location: Any = "cpu") -> RunPlan:
     remove_orphan_temp_files(run_dir / CHECKPOINT_DIR, announce=lambda line: print(line, flush=True))
     trimmed = trim_metrics(run_dir / "metrics.jsonl", step)
     return RunPlan(dataparser=dataparser, run_dir=run_dir, checkpoint=checkpoint, checkpoint_path=path,
-                   trimmed_records=trimmed)
+                   trimmed_records=trimmed, moved_scene=moved_from)
 
 
 def _fields_behind(differing: list[str], checkpoint: dict[str, Any]) -> dict[str, Any]:
@@ -376,11 +426,13 @@ __all__ = [
     "RunPlan",
     "announce_seed_points",
     "check_metrics_log",
+    "check_moved_scene",
     "check_output_dir",
     "check_training_image_sizes",
     "check_writable_folder",
     "comparable_dataparser",
     "differences",
+    "moved_scene",
     "plan_run",
     "recorded_dataparser",
     "scene_of",
