@@ -1,4 +1,5 @@
-"""``kc-train METHOD --data SCENE [--dotted.config.fields VALUE ...]``: train a registered method.
+"""``kc-train METHOD --data SCENE [--dotted.config.fields VALUE ...]``: train a registered method;
+``kc-train --load-dir RUN [FLAG VALUE ...]``: resume a run from its folder alone.
 
 Methods come from the ``kc_splatfacto.method_configs`` entry points and ``KC_SPLATFACTO_METHOD_CONFIGS``
 (see :mod:`kc_splatfacto.registry`); ``kc-train --help`` lists them with their descriptions, and
@@ -11,7 +12,20 @@ Methods come from the ``kc_splatfacto.method_configs`` entry points and ``KC_SPL
 
 The dataparser is a subcommand after the method's options (``auto``, the default, detects the format from
 ``--data``); ``kc-train METHOD DATAPARSER --help`` lists its options.
+
+Resume (the newest checkpoint, or ``--load-step N``, continued in the same run folder)::
+
+    kc-train --load-dir outputs/demo/kc-splatfacto/<timestamp>
+    kc-train --load-config outputs/demo/kc-splatfacto/<timestamp>/config.yml --max-num-iterations 5000
+    kc-train --load-dir RUN --data NEW_PATH
     kc-train kc-splatfacto --data demo --load-dir outputs/demo/kc-splatfacto/<timestamp>/nerfstudio_models
+
+Without METHOD, ``--load-dir RUN`` (the run folder, its nerfstudio_models folder or a checkpoint in it) or
+``--load-config RUN/config.yml`` takes the method, scene, dataparser and every setting from the run's ``config.yml``,
+as the full command line that started it would give them. A flag beside it overrides the recorded value, one line
+each (``kc-train: max_num_iterations 5000 (the run recorded 3000)``); the resume rules decide whether the same run
+may go on with it (:mod:`kc_splatfacto.engine.run_guard`). A run whose scene folder moved says so and takes
+``--data NEW_PATH``.
 
 A mistake in the input (scene, flags, checkpoint, config) prints one line ``kc-train: error: ...`` and exits 2;
 ``--debug`` or ``KC_DEBUG=1`` shows its traceback. SIGTERM, like Ctrl-C, saves a checkpoint and exits 0.
@@ -20,7 +34,9 @@ A mistake in the input (scene, flags, checkpoint, config) prints one line ``kc-t
 from __future__ import annotations
 
 import copy
+import dataclasses
 import sys
+from pathlib import Path
 from typing import Any
 
 import tyro
@@ -36,14 +52,22 @@ from kc_splatfacto.cli.flags import (
     tyro_errors_as_one_line,
 )
 from kc_splatfacto.cli.main import did_you_mean, run_cli
+from kc_splatfacto.data.detect import DEMO_NAME, AutoDataParserConfig
+from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR
+from kc_splatfacto.engine.config_file import read_config_file
 from kc_splatfacto.engine.datamanager import install_dataparser_subcommands
-from kc_splatfacto.engine.trainer import TrainingDivergedError
+from kc_splatfacto.engine.run_guard import scene_of
+from kc_splatfacto.engine.trainer import TrainerConfig, TrainingDivergedError
 from kc_splatfacto.errors import UserError
 from kc_splatfacto.model.strategy import NoGaussiansLeftError
-from kc_splatfacto.registry import discover_methods
+from kc_splatfacto.registry import discover_dataparsers, discover_methods
 from kc_splatfacto.viewer.viewer import Viewer, import_viser
 
 DESCRIPTION = "Train a Gaussian-splatting method (KC-3DGS or Splatfacto) on a scene."
+#: the second paragraph of ``kc-train --help``
+RESUME_HELP = ("Resume a run from its folder alone: kc-train --load-dir RUN [FLAG VALUE ...] (or --load-config "
+               "RUN/config.yml): the method, scene and settings come from RUN/config.yml, a flag beside it overrides "
+               "the recorded value, --data NEW_PATH names a scene that moved.")
 
 
 def parse_config(argv: list[str]):
@@ -57,7 +81,7 @@ def parse_config(argv: list[str]):
     defaults = {name: copy.deepcopy(spec.config) for name, spec in methods.items()}
     descriptions = {name: spec.description for name, spec in methods.items()}
     union = _markers(tyro.extras.subcommand_type_from_defaults(defaults, descriptions))
-    return tyro.cli(union, args=argv, description=DESCRIPTION)
+    return tyro.cli(union, args=argv, description=f"{DESCRIPTION}\n\n{RESUME_HELP}")
 
 
 def _markers(config_type: Any) -> Any:
@@ -90,6 +114,9 @@ def parse_command_line(argv: list[str]):
     method = argv[0] if argv and not argv[0].startswith("-") else None
     if method is not None and method not in methods:
         raise UserError(f"unknown method '{method}'{did_you_mean(method, methods)} (kc-train --help lists them)")
+    if method is not None and _flag_value(argv, LOAD_CONFIG_FLAG) is not None:
+        raise UserError(f"{LOAD_CONFIG_FLAG} resumes a run with the method, scene and settings its config.yml "
+                        f"records: leave out the method (kc-train {LOAD_CONFIG_FLAG} RUN/config.yml [FLAG VALUE ...])")
     if method is None and argv and argv[0] not in HELP_FLAGS:
         raise UserError(f"the method comes first: kc-train METHOD --data SCENE [OPTIONS], METHOD one of "
                         f"{', '.join(sorted(methods))}")
@@ -144,9 +171,14 @@ def expand_bare_flags(argv: list[str]) -> list[str]:
 def main(argv: list[str]) -> int:
     if not argv:
         argv = ["--help"]
-    config = parse_command_line(expand_bare_flags(argv))
-    if not any(a == SCENE_FLAG or a.startswith(SCENE_FLAG + "=") for a in argv):
-        raise UserError("no scene given: pass --data PATH (a scene folder, or 'demo' for the demo scene)")
+    if is_run_folder_resume(argv):
+        config = resume_config(expand_bare_flags(argv))
+    else:
+        config = parse_command_line(expand_bare_flags(argv))
+        if _flag_value(argv, SCENE_FLAG) is None:
+            hint = (f"; or leave out the method to resume the run with the scene and settings it recorded "
+                    f"(kc-train {LOAD_DIR_FLAG} RUN)" if _flag_value(argv, LOAD_DIR_FLAG) is not None else "")
+            raise UserError(f"no scene given: pass --data PATH (a scene folder, or 'demo' for the demo scene){hint}")
 
     trainer = config.setup()  # every value checked, with its dotted name, before the device, scene or run folder
     viewer = attach_viewer(trainer) if config.viewer.enabled else None
@@ -180,6 +212,188 @@ def main(argv: list[str]) -> int:
         finally:
             viewer.stop()
     return 0
+
+
+LOAD_DIR_FLAG = "--load-dir"
+LOAD_CONFIG_FLAG = "--load-config"
+#: fields that say what a resume continues from, not how the run trains: set from the command line, never reported
+#: as overrides of what the run recorded (a run that was itself a resume recorded its own)
+RESUME_CONTROL_FIELDS = ("load_dir", "load_step", "resume_from_other_run")
+CONFIG_FILE = "config.yml"
+
+
+def _flag_value(argv: list[str], flag: str) -> str | None:
+    """The value of ``flag`` (``--flag VALUE`` or ``--flag=VALUE``) in ``argv``, the last one given; None if absent."""
+    found = None
+    for i, token in enumerate(argv):
+        if token == flag:
+            found = argv[i + 1] if i + 1 < len(argv) else ""
+        elif token.startswith(flag + "="):
+            found = token[len(flag) + 1:]
+    return found
+
+
+def _without_flag(argv: list[str], flag: str) -> list[str]:
+    """``argv`` without ``flag`` and its value (either spelling)."""
+    kept: list[str] = []
+    skip = False
+    for token in argv:
+        if skip:
+            skip = False
+        elif token == flag:
+            skip = True
+        elif not token.startswith(flag + "="):
+            kept.append(token)
+    return kept
+
+
+def is_run_folder_resume(argv: list[str]) -> bool:
+    """``kc-train --load-dir RUN ...`` / ``kc-train --load-config RUN/config.yml ...``: no method first, a run named."""
+    if not argv or not argv[0].startswith("-") or argv[0] in HELP_FLAGS:
+        return False
+    return any(_flag_value(argv, flag) is not None for flag in (LOAD_DIR_FLAG, LOAD_CONFIG_FLAG))
+
+
+def run_config_path(load_dir: str | None, load_config: str | None) -> Path:
+    """The ``config.yml`` of the run ``--load-config`` (the file, or its run folder) or else ``--load-dir`` (a run
+    folder, its nerfstudio_models folder or a checkpoint in it) names; a :class:`UserError` naming the file expected
+    when there is none."""
+    flag, value = (LOAD_CONFIG_FLAG, load_config) if load_config is not None else (LOAD_DIR_FLAG, load_dir)
+    path = Path(value or "")
+    if not str(value or "").strip():
+        raise UserError(f"{flag} needs a value: a run folder (kc-train {flag} RUN)")
+    if not path.exists():
+        raise UserError(f"{flag} {value} does not exist: pass a run folder kc-train wrote (outputs/EXPERIMENT/METHOD/"
+                        "TIMESTAMP), its nerfstudio_models folder, one of its checkpoints or its config.yml")
+    if flag == LOAD_CONFIG_FLAG and path.is_file():
+        return path
+    folder = path.parent if path.is_file() else path
+    if folder.name == CHECKPOINT_DIR:
+        folder = folder.parent
+    config_path = folder / CONFIG_FILE
+    if not config_path.is_file():
+        raise UserError(
+            f"{flag} {value}: {config_path} does not exist, and a resume without a method reads the run's method, "
+            f"scene and settings from it (kc-train writes it into every run folder): pass a run folder kc-train "
+            f"wrote, or the full command line (kc-train METHOD --data SCENE [OPTIONS] {LOAD_DIR_FLAG} {value})"
+        )
+    return config_path
+
+
+def _dataparser_name(parser: Any) -> str:
+    """The subcommand name of the dataparser config ``parser`` (``auto`` for an undetected one)."""
+    if isinstance(parser, AutoDataParserConfig):
+        return "auto"
+    for name, spec in discover_dataparsers().items():
+        if type(spec.config) is type(parser):
+            return name
+    raise UserError(f"the run's dataparser {type(parser).__name__} is not a registered dataparser (is the package "
+                    "that provides it installed?)")
+
+
+def _override_args(args: list[str], recorded: TrainerConfig, parsers: dict[str, list]) -> list[str]:
+    """The flags given beside ``--load-dir`` as :func:`override_config` reads them: ``--data NEW_PATH`` and the
+    dataparser's own options go behind the dataparser subcommand, the run's own one unless another is named (which
+    then reads the run's scene unless ``--data`` names one)."""
+    at = subcommand_index(["", *args], parsers) - 1
+    head, tail = args[:at], args[at:]
+    scene = _flag_value(head, SCENE_FLAG)
+    head = _without_flag(head, SCENE_FLAG)
+    parser_flags = {flag.name for flags in parsers.values() for flag in flags}
+    method_flags = {flag.name for flag in config_flags(recorded)}
+    for token in head:
+        name = token.split("=", 1)[0]
+        if name in parser_flags and name not in method_flags:
+            raise UserError(f"{name} is an option of the dataparser: put it after the dataparser's name (kc-train "
+                            f"{LOAD_DIR_FLAG} RUN {_dataparser_name(recorded.pipeline.datamanager.dataparser)} {name} "
+                            "VALUE)")
+    own = _dataparser_name(recorded.pipeline.datamanager.dataparser)
+    if not tail and scene is None:
+        return head
+    subcommand, rest = (tail[0], tail[1:]) if tail else (own, [])
+    if scene is None and subcommand != own and _flag_value(rest, SCENE_FLAG) is None:
+        scene = str(recorded.pipeline.datamanager.dataparser.data)
+    return [*head, subcommand, *([SCENE_FLAG, scene] if scene is not None else []), *rest]
+
+
+def _settings(value: Any, prefix: str = "") -> dict[str, Any]:
+    """{dotted field: value} of a config: every plain field, and for each nested config its class (a dataparser
+    subcommand swaps the class)."""
+    if not dataclasses.is_dataclass(value) or isinstance(value, type):
+        return {prefix.rstrip("."): value}
+    found: dict[str, Any] = {prefix.rstrip("."): type(value)} if prefix else {}
+    for f in dataclasses.fields(value):
+        found.update(_settings(getattr(value, f.name), f"{prefix}{f.name}."))
+    return found
+
+
+def overrides(recorded: Any, config: Any) -> list[str]:
+    """One line for each setting in which ``config`` differs from the ``recorded`` one (a nested config whose class
+    changed is one line; the resume-control fields are not settings)."""
+    before, after = _settings(recorded), _settings(config)
+    lines: list[str] = []
+    swapped: list[str] = []
+    for name, value in after.items():
+        if name in RESUME_CONTROL_FIELDS or any(name.startswith(s + ".") for s in swapped):
+            continue
+        old = before.get(name, "(absent)")
+        if isinstance(value, type) or isinstance(old, type):
+            if value is not old:
+                swapped.append(name)
+                lines.append(f"kc-train: {name} {getattr(value, '__name__', value)} (the run recorded "
+                             f"{getattr(old, '__name__', old)})")
+            continue
+        if old != value:
+            label = "data" if name == "pipeline.datamanager.dataparser.data" else name
+            lines.append(f"kc-train: {label} {value} (the run recorded {old})")
+    return lines
+
+
+def resume_config(argv: list[str]) -> TrainerConfig:
+    """The TrainerConfig of ``kc-train --load-dir RUN [FLAG VALUE ...]`` (or ``--load-config RUN/config.yml``): the
+    run's ``config.yml`` as the trainer wrote it, resumed from ``RUN`` (its newest checkpoint unless ``--load-step``),
+    with the flags given beside it applied by :func:`override_config` and printed, one line each."""
+    load_dir, load_config = _flag_value(argv, LOAD_DIR_FLAG), _flag_value(argv, LOAD_CONFIG_FLAG)
+    config_path = run_config_path(load_dir, load_config)
+    recorded = read_config_file(config_path, TrainerConfig)
+    args = _without_flag(_without_flag(argv, LOAD_DIR_FLAG), LOAD_CONFIG_FLAG)
+    base = copy.deepcopy(recorded)
+    base.load_dir = Path(load_dir) if load_dir is not None else config_path.parent
+    base.load_step, base.resume_from_other_run = None, False  # what this command says, not what the run was told
+    parsers = dataparser_flags()
+    if any(a in HELP_FLAGS for a in args[:subcommand_index(["", *args], parsers) - 1]):
+        description = discover_methods().get(base.method_name)
+        text = short_help(base.method_name, description.description if description else "", base)
+        text = text.replace(f"kc-train {base.method_name} --data SCENE", f"kc-train {LOAD_DIR_FLAG} RUN", 1)
+        text = text.replace(f"kc-train {base.method_name} --help-all", f"kc-train {LOAD_DIR_FLAG} RUN --help-all")
+        print(text.replace("(default: ", "(the run: "))  # the defaults shown are the run's values
+        raise SystemExit(0)
+    args = _override_args(["--help" if a == HELP_ALL_FLAG else a for a in args], recorded, parsers)
+    config = base
+    if args:
+        valid = [SCENE_FLAG, LOAD_DIR_FLAG, LOAD_CONFIG_FLAG, *(f.name for f in config_flags(base)),
+                 *(f.name for flags in parsers.values() for f in flags), *HELP_FLAGS]
+        with tyro_errors_as_one_line(valid, list(parsers), "kc-train"):
+            config = override_config(base, args)
+    for line in overrides(base, config):
+        print(line, flush=True)
+    check_scene_exists(config, recorded, config_path)
+    return config
+
+
+def check_scene_exists(config: TrainerConfig, recorded: TrainerConfig, config_path: Path) -> None:
+    """The scene a resume from the run folder trains on must exist: the recorded one (a :class:`UserError` naming it
+    and ``--data NEW_PATH`` when it moved), or the one ``--data`` names instead."""
+    scene, recorded_scene = config.pipeline.datamanager.dataparser.data, recorded.pipeline.datamanager.dataparser.data
+    if scene_of(config.pipeline.datamanager.dataparser) == DEMO_NAME or Path(scene).expanduser().exists():
+        return
+    if scene == recorded_scene:
+        raise UserError(
+            f"the scene {scene} that {config_path} records does not exist (moved or deleted?): pass --data NEW_PATH "
+            f"with the scene where it is now (kc-train {LOAD_DIR_FLAG} {config_path.parent} --data NEW_PATH)"
+        )
+    raise UserError(f"--data {scene} does not exist: pass the scene folder the run trained on (it recorded "
+                    f"{recorded_scene})")
 
 
 def attach_viewer(trainer):
