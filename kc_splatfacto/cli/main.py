@@ -18,18 +18,13 @@ import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+# the console scripts' launcher (which says Ctrl-C during the imports) holds the debug switch and the exit code
+from kc_splatfacto.cli.launch import DEBUG_FLAG, INTERRUPTED_EXIT, debug_requested
 from kc_splatfacto.engine.run_guard import check_writable_folder
 from kc_splatfacto.errors import Interrupted, UserError
 
-DEBUG_FLAG = "--debug"
-DEBUG_ENV = "KC_DEBUG"
 USER_ERROR_EXIT = 2
-INTERRUPTED_EXIT = 130  # 128 + SIGINT, what a shell reports for a command Ctrl-C ended
 FULL_DISK_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
-
-
-def debug_requested(argv: Sequence[str]) -> bool:
-    return DEBUG_FLAG in argv or os.environ.get(DEBUG_ENV, "").strip() not in ("", "0", "false", "no")
 
 
 def run_cli(prog: str, main: Callable[[list[str]], int], argv: Sequence[str] | None = None) -> int:

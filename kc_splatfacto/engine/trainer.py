@@ -43,7 +43,6 @@ from kc_splatfacto.engine.optimizers import OptimizersConfig
 from kc_splatfacto.engine.pipeline import Pipeline, PipelineConfig
 from kc_splatfacto.engine.run_guard import (
     announce_seed_points,
-    check_moved_scene,
     check_training_image_sizes,
     plan_run,
     recorded_dataparser,
@@ -279,7 +278,6 @@ class Trainer:
         self._dataparser = plan.dataparser
         cfg.machine.seed_everything()
         self._pipeline = cfg.pipeline.setup(device=self.device, seed=cfg.machine.seed, dataparser=plan.dataparser)
-        check_moved_scene(self.datamanager, plan)  # a scene named for the run's vanished one: the same cameras
         check_training_image_sizes(self.datamanager, cfg.pipeline.model)
         announce_seed_points(self.datamanager, cfg.pipeline.model)
         self.model.train()
