@@ -14,8 +14,7 @@
 
 A run whose recorded scene no longer exists (the folder moved or was deleted) is the same run on the scene the command
 names instead (``--data NEW_PATH``), provided that scene's cameras give the dataparser transform the run recorded in
-its ``dataparser_transforms.json`` (:func:`check_moved_scene`, once the scene has loaded); ``config.yml`` then records
-the new path.
+its ``dataparser_transforms.json`` (:func:`check_moved_scene`); ``config.yml`` then records the new path.
 
 :func:`plan_run` also resolves the run's dataparser, once (``auto`` detected from the scene, the scene path handed to
 it): :attr:`RunPlan.dataparser` is what the data manager loads, what the resume checks compare and what ``config.yml``
@@ -74,8 +73,6 @@ class RunPlan:
         checkpoint: the loaded checkpoint payload to restore, or None.
         checkpoint_path: its file, or None.
         trimmed_records: metrics.jsonl records dropped because they were written after the checkpoint.
-        moved_scene: the scene the run recorded, when it no longer exists and ``dataparser`` names another in its
-            place (a resume of the same run: :func:`check_moved_scene` compares the two once the scene has loaded).
     """
 
     dataparser: DataParserConfig
@@ -83,7 +80,6 @@ class RunPlan:
     checkpoint: dict[str, Any] | None = None
     checkpoint_path: Path | None = None
     trimmed_records: int = 0
-    moved_scene: Path | None = None
 
 
 def check_output_dir(config: TrainerConfig) -> None:
@@ -158,26 +154,25 @@ def moved_scene(stored_parser: DataParserConfig, current_parser: DataParserConfi
     return Path(stored_parser.data) if Path(current_parser.data).expanduser().exists() else None
 
 
-def check_moved_scene(datamanager: DataManager, plan: RunPlan) -> None:
-    """A resume on a scene named in place of the run's moved one (:attr:`RunPlan.moved_scene`) must be on the same
-    scene: its cameras give the dataparser transform (rotation, centre, scale) the run recorded in its
-    ``dataparser_transforms.json``; a :class:`ResumeError` naming both scenes when they do not (nothing written)."""
-    if plan.moved_scene is None or plan.run_dir is None:
-        return
-    recorded_path = plan.run_dir / "dataparser_transforms.json"
-    if not recorded_path.is_file():  # nothing recorded to compare with
+def check_moved_scene(dataparser: DataParserConfig, run_dir: Path, recorded_scene: Path | None) -> None:
+    """A resume on the scene ``dataparser`` reads in place of the run's vanished ``recorded_scene`` (None: the scene
+    did not move) must be on the same scene: its cameras give the dataparser transform (rotation, centre, scale) the
+    run recorded in its ``dataparser_transforms.json``. A :class:`ResumeError` naming both scenes when they do not,
+    before the resume writes anything (the scene's cameras are read here, once more than when it loads)."""
+    recorded_path = run_dir / "dataparser_transforms.json"
+    if recorded_scene is None or not recorded_path.is_file():  # nothing moved, or nothing recorded to compare with
         return
     recorded = read_dataparser_transforms(recorded_path)
-    outputs = datamanager.train_outputs
+    outputs = dataparser.setup().get_dataparser_outputs(split="train")
     transform = np.asarray(torch.as_tensor(outputs.dataparser_transform, dtype=torch.float64).cpu().numpy())[:3, :4]
     if np.allclose(transform, recorded.transform, rtol=1e-9, atol=1e-9) and math.isclose(
             float(outputs.dataparser_scale), recorded.scale, rel_tol=1e-9):
         return
     raise ResumeError(
-        f"--data {plan.dataparser.data} is not the scene of the run in {plan.run_dir}: its cameras give another "
-        f"dataparser transform than the run's {recorded_path} (the run trained on {plan.moved_scene}, which no longer "
-        f"exists). Pass --data with the run's scene where it is now, or {OVERRIDE_FLAG} to continue from its checkpoint "
-        "on this scene in a new run folder"
+        f"--data {dataparser.data} is not the scene of the run in {run_dir}: its cameras give another dataparser "
+        f"transform than the run's {recorded_path} (the run trained on {recorded_scene}, which no longer exists). "
+        f"Pass --data with the run's scene where it is now, or {OVERRIDE_FLAG} to continue from its checkpoint on "
+        "this scene in a new run folder"
     )
 
 
@@ -318,7 +313,7 @@ def plan_run(config: TrainerConfig, map_location: Any = "cpu") -> RunPlan:
         stored = read_config_file(stored_path, type(config))
         stored_parser = comparable_dataparser(stored)
         moved_from = moved_scene(stored_parser, dataparser)
-        if moved_from is not None:  # the scene named here stands for the run's vanished one (compared once loaded)
+        if moved_from is not None:  # the scene named here stands for the run's vanished one (its cameras: below)
             stored_parser = dataclasses.replace(stored_parser, data=dataparser.data)
         problems = differences(stored, config, stored_parser=stored_parser, current_parser=dataparser)
         if problems and not config.resume_from_other_run:
@@ -351,6 +346,7 @@ def plan_run(config: TrainerConfig, map_location: Any = "cpu") -> RunPlan:
         check_checkpoint_fits(checkpoint, config, path, same_method=False)
         return RunPlan(dataparser=dataparser, checkpoint=checkpoint, checkpoint_path=path)
     check_checkpoint_fits(checkpoint, config, path)  # the run's config.yml and its checkpoint must agree
+    check_moved_scene(dataparser, run_dir, moved_from)
     if config.resume_from_other_run and not os.access(run_dir, os.W_OK | os.X_OK):
         # a run folder this user cannot write (another user's): continued from its checkpoint in a new run folder
         return RunPlan(dataparser=dataparser, checkpoint=checkpoint, checkpoint_path=path)
@@ -362,7 +358,7 @@ def plan_run(config: TrainerConfig, map_location: Any = "cpu") -> RunPlan:
     remove_orphan_temp_files(run_dir / CHECKPOINT_DIR, announce=lambda line: print(line, flush=True))
     trimmed = trim_metrics(run_dir / "metrics.jsonl", step)
     return RunPlan(dataparser=dataparser, run_dir=run_dir, checkpoint=checkpoint, checkpoint_path=path,
-                   trimmed_records=trimmed, moved_scene=moved_from)
+                   trimmed_records=trimmed)
 
 
 def _fields_behind(differing: list[str], checkpoint: dict[str, Any]) -> dict[str, Any]:

@@ -183,11 +183,14 @@ def test_a_moved_scene_is_named_with_the_flag_to_pass_and_data_then_resumes(shar
 
     # another scene in its place (other cameras) is refused before anything is written
     other = tiny_scene(tmp_path / "other-scene", shared.root / "cache", num_cameras=6)
+    files = ("config.yml", "metrics.jsonl", "dataparser_transforms.json")
+    before = [(run / name).read_text() for name in files]
     assert kc_train.entrypoint(["--load-dir", str(run), "--data", str(other), "--max-num-iterations",
                                 str(STEPS)]) == 2
     [error] = capsys.readouterr().err.strip().splitlines()
     assert f"--data {other} is not the scene of the run" in error and "dataparser_transforms.json" in error
     assert [p.name for p in list_checkpoints(run / CHECKPOINT_DIR)] == [f"step-{STOP_AT:09d}.ckpt"]
+    assert [(run / name).read_text() for name in files] == before
 
     assert kc_train.entrypoint(["--load-dir", str(run), "--data", str(moved), "--max-num-iterations",
                                 str(STEPS)]) == 0
