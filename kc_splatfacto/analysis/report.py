@@ -427,7 +427,10 @@ def pooled_deltas(paired: Sequence[dict]) -> list[dict]:
     - ``per_scene``: the mean of the per-scene mean differences (each scene weighted equally: the average effect
       over these scenes), its standard error ``sqrt(sum_k s_k^2 / n_k) / K`` from the within-scene sample variances,
       and a t interval with Welch-Satterthwaite degrees of freedom. It does not generalise to other scenes: the
-      between-scene spread is reported as ``scene_means`` beside it.
+      between-scene spread is reported as ``scene_means`` beside it. With no within-scene variation at all (every
+      scene's differences constant, e.g. a metric both methods hold fixed) the standard error is 0 and the interval
+      is the point itself, as :func:`mean_interval` gives for constant values (the degrees of freedom, 0/0, are
+      not needed then).
     """
     from scipy.stats import t as student_t
 
@@ -450,8 +453,11 @@ def pooled_deltas(paired: Sequence[dict]) -> list[dict]:
             if all(v.size >= 2 for v in per_scene):
                 shares = np.array([v.var(ddof=1) / v.size for v in per_scene])
                 se = float(np.sqrt(shares.sum()) / len(per_scene))
-                dof = float(shares.sum() ** 2 / np.sum(shares ** 2 / np.array([v.size - 1 for v in per_scene])))
-                half = float(student_t.ppf((1 + INTERVAL_LEVEL) / 2, dof) * se)
+                if se > 0:
+                    dof = float(shares.sum() ** 2 / np.sum(shares ** 2 / np.array([v.size - 1 for v in per_scene])))
+                    half = float(student_t.ppf((1 + INTERVAL_LEVEL) / 2, dof) * se)
+                else:
+                    half = 0.0
                 result[f"{key}_per_scene_interval"] = (float(means.mean()) - half, float(means.mean()) + half)
             else:
                 result[f"{key}_per_scene_interval"] = None

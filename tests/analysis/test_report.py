@@ -261,9 +261,11 @@ def test_clocks_leave_out_the_first_steps_start_up():
     assert report.clock_offsets([{"kind": "eval", "step": 1, "train_s": 5.0}])["train_s"] == 0.0  # nothing to compare
 
 
+@pytest.mark.filterwarnings("error::RuntimeWarning")
 def test_also_against_pairs_the_third_arm_with_the_second(tmp_path):
     """A three-arm study's report against a second reference: low-pass minus kc at each (scene, seed), by hand, and
-    pooled as scipy's one-sample t interval over the pairs; the baseline is not paired with the second reference."""
+    pooled as scipy's one-sample t interval over the pairs; the baseline is not paired with the second reference.
+    SSIM is the same in every run: its per-scene interval is the point 0, without a 0/0 warning (issue 68)."""
     from scipy import stats
 
     rng = np.random.default_rng(11)
@@ -285,6 +287,7 @@ def test_also_against_pairs_the_third_arm_with_the_second(tmp_path):
     assert pooled["num_pairs"] == 6
     assert pooled["psnr_db_all_pairs_interval"] == pytest.approx(
         stats.ttest_1samp(by_hand, 0.0).confidence_interval(0.95), abs=1e-10)
+    assert pooled["ssim_pct_per_scene_interval"] == pooled["ssim_pct_all_pairs_interval"] == [0.0, 0.0]
     table = paths["table"].read_text()
     assert "Per-seed differences to `kc-splatfacto`" in table and "differences to `kc-splatfacto` at the same seed" in table
     low, high = pooled["psnr_db_all_pairs_interval"]
