@@ -599,7 +599,7 @@ def test_hostile_input(case, tmp_path, templates, finished_run, capsys, monkeypa
     case.edit(root)
     out = tmp_path / "out"
     out.mkdir()
-    # a tool's default output (kc-eval's metrics.json, kc-export's splat.ply) lands here, not in the checkout
+    # a tool's default output in the current folder (kc-eval's metrics.json) lands here, not in the checkout
     monkeypatch.chdir(out)
     monkeypatch.setenv("KC_SPLATFACTO_CACHE", str(out / "cache"))
     monkeypatch.delenv("KC_DEBUG", raising=False)

@@ -1,5 +1,8 @@
 """``kc-export --load-config outputs/.../config.yml --output-path scene.spz``: the Gaussians as a splat file.
 
+Without ``--output-path`` the file goes into the run's own folder: ``RUN/exports/splat.<ending>`` (as kc-render's
+``RUN/renders``), whatever the current folder.
+
 Formats (``--format``, or the output file's ending): ``ply`` (Inria's 3DGS PLY, ``.ply``), ``splat`` (antimatter15's,
 ``.splat``), ``ply-compressed`` (SuperSplat's compressed PLY, ``.compressed.ply``) and ``spz`` (Niantic's, ``.spz``).
 """
@@ -12,6 +15,7 @@ from pathlib import Path
 from kc_splatfacto.cli.main import (
     ArgumentParser,
     add_run_arguments,
+    check_folder_can_hold,
     check_output_path,
     existing_run_config,
     path_flag,
@@ -22,15 +26,18 @@ from kc_splatfacto.errors import UserError
 from kc_splatfacto.model.export import EXTENSIONS, FORMATS, ExportResult, export_gaussians, format_from_path
 
 DEFAULT_STEM = "splat"
+DEFAULT_FOLDER = "exports"
+"""without --output-path: RUN/exports/splat.<the format's ending>, RUN the run's folder"""
 _ENDING = {fmt: ending for ending, fmt in EXTENSIONS.items()}  # the file ending each format gets by default
 
 
-def resolve_format(output_path: Path | None, fmt: str | None) -> tuple[Path, str]:
+def resolve_format(output_path: Path | None, fmt: str | None, run_dir: Path = Path(".")) -> tuple[Path, str]:
     """The output path and format from what the user passed: ``--format`` and the file's ending must agree where
-    both say something (a compressed PLY may end in plain ``.ply``); with neither, the default ``splat.ply``."""
+    both say something (a compressed PLY may end in plain ``.ply``); with neither, the default
+    ``run_dir/exports/splat.ply``."""
     if output_path is None:
         fmt = fmt or "ply"
-        return Path(DEFAULT_STEM + _ENDING[fmt]), fmt
+        return run_dir / DEFAULT_FOLDER / (DEFAULT_STEM + _ENDING[fmt]), fmt
     implied = format_from_path(output_path)
     if fmt is None:
         if implied is None:
@@ -50,10 +57,11 @@ def run_export(load_config: Path, output_path: Path | None = None, step: int | N
     load_config = existing_run_config("kc-export", load_config)
     if passed is not None:  # a folder or an unwritable place is said as such, before the name's format
         check_output_path(passed, "--output-path")
-    output_path, fmt = resolve_format(passed, fmt)
+    output_path, fmt = resolve_format(passed, fmt, load_config.parent)
     default = output_path if passed is None else None  # messages say "--output-path's default" for a path not typed
-    if passed is None:
-        check_output_path(output_path, "--output-path", default)
+    if passed is None:  # checked, not created: the writer makes RUN/exports once the run has loaded
+        check_folder_can_hold(output_path.parent, f"the run's {DEFAULT_FOLDER} folder {output_path.parent}",
+                              "--output-path")
     if output_path.exists() and not overwrite:
         raise UserError(f"kc-export: {path_flag('--output-path', output_path, default)} exists: pass --overwrite to "
                         "replace it, or another --output-path")
@@ -79,8 +87,9 @@ def main(argv: list[str]) -> int:
                             "3DGS, most tools), splat (antimatter15), ply-compressed (SuperSplat), spz (Niantic).")
     add_run_arguments(parser)
     parser.add_argument("--output-path", type=Path, default=None,
-                        help=f"the file to write (default {DEFAULT_STEM} with the format's ending: "
-                             f"{', '.join(EXTENSIONS)})")
+                        help=f"the file to write (default: RUN/{DEFAULT_FOLDER}/{DEFAULT_STEM}{_ENDING['ply']}, "
+                             "or with --format " + ", ".join(DEFAULT_STEM + _ENDING[f] for f in FORMATS if f != "ply")
+                             + "; RUN is the run's folder, that of --load-config)")
     parser.add_argument("--format", choices=FORMATS, default=None,
                         help="the file format (default: from the --output-path ending; ply without one)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --output-path")

@@ -4,6 +4,8 @@ images, and the user's mistakes (an existing file, a name that says no format, a
 
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pytest
 import torch
@@ -97,14 +99,44 @@ def test_every_format_from_the_file_name(run_config, tmp_path, capsys):
 
 
 def test_format_flag_and_default_name(run_config, tmp_path, monkeypatch, capsys):
+    """Without --output-path the file goes to the run's own RUN/exports/splat.<ending> (issue 68: it went to the
+    current folder), which the last line names; --help says so."""
+    run = tmp_path / "run"
+    shutil.copytree(run_config.parent, run)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    assert kc_export.entrypoint(["--load-config", str(run), "--format", "spz"]) == 0
+    assert capsys.readouterr().out.rstrip().endswith(f"-> {run / 'exports' / 'splat.spz'}")
+    assert read_spz((run / "exports" / "splat.spz").read_bytes())["means"].shape[1] == 3
+    assert not list(elsewhere.iterdir())
+    assert kc_export.entrypoint(["--load-config", str(run / "config.yml")]) == 0  # ply without --format
+    assert capsys.readouterr().out.rstrip().endswith(f"-> {run / 'exports' / 'splat.ply'}")
+    with pytest.raises(SystemExit):
+        kc_export.entrypoint(["--help"])
+    assert "default: RUN/exports/splat.ply" in " ".join(capsys.readouterr().out.split())
     monkeypatch.chdir(tmp_path)
-    assert kc_export.entrypoint(["--load-config", str(run_config), "--format", "spz"]) == 0
-    assert capsys.readouterr().out.rstrip().endswith("-> splat.spz")
     # a compressed PLY may end in plain .ply (it is one); any other name takes the format from --format
     for name in ("scene.ply", "scene.bin"):
         assert kc_export.entrypoint(["--load-config", str(run_config), "--format", "ply-compressed",
                                      "--output-path", name]) == 0
         assert b"element chunk" in (tmp_path / name).read_bytes()[:200]
+
+
+def test_default_folder_that_cannot_be_made_is_one_line_and_nothing_is_created(run_config, tmp_path, capsys):
+    """RUN/exports blocked by a file: one line naming it; a run that fails to load leaves no exports folder."""
+    run = tmp_path / "run"
+    shutil.copytree(run_config.parent, run)
+    (run / "exports").write_text("a file, not a folder")
+    assert kc_export.entrypoint(["--load-config", str(run)]) == 2
+    line = _one_error_line(capsys)
+    assert f"the run's exports folder {run / 'exports'} is a file" in line and "--output-path" in line
+    (run / "exports").unlink()
+    for checkpoint in (run / "nerfstudio_models").iterdir():
+        checkpoint.unlink()
+    assert kc_export.entrypoint(["--load-config", str(run)]) == 2
+    assert "checkpoint" in _one_error_line(capsys)
+    assert not (run / "exports").exists()
 
 
 def test_existing_output_refused_unless_overwrite(run_config, tmp_path, capsys):
