@@ -111,6 +111,12 @@ STUDY_METHODS = ("splatfacto", "kc-splatfacto")  # on every scene: the GPU issue
 LOWPASS_ARM = "splatfacto-lowpass"  # issue 56's low-pass wavelet supervision, on the LLFF scenes only
 DRY_PHASE_S = 900
 TRAIN_AT_ONCE = 3  # short training runs at once in the train phase (16 host cores, one GPU)
+#: the dry run's train phase: one method of each model, strategy and set of loss terms (the ablations and variants
+#: differ from kc-splatfacto in coefficients only, which tests/engine/test_validation.py checks for every method);
+#: on the device every registered method trains. Each run is ~10 CPU-seconds of start-up on the CI's 2 cores.
+DRY_TRAIN_METHODS = ("splatfacto", "kc-splatfacto", "kc-splatfacto-corr", "splatfacto-mcmc", "splatfacto-lowpass")
+#: the bench phase's scenes; the dry run benches the first only (its plumbing is the same on both)
+BENCH_SCENES = (("castle-P30", 1), ("fern-12", 1))
 
 
 @dataclass(frozen=True)
@@ -691,6 +697,8 @@ def phase_train(ctx: Context, budget: float) -> int:
     from concurrent.futures import ThreadPoolExecutor
 
     methods = registered_methods(ctx)
+    if ctx.dry:
+        methods = [m for m in methods if m in DRY_TRAIN_METHODS]
     steps, downscale = (5, 8) if ctx.dry else (300, 4)
     start = time.monotonic()
 
@@ -717,7 +725,7 @@ def phase_train(ctx: Context, budget: float) -> int:
 
 
 def phase_bench(ctx: Context, budget: float) -> int:
-    scenes = (("castle-P30", 1), ("fern-12", 1))
+    scenes = BENCH_SCENES[:1] if ctx.dry else BENCH_SCENES
     code = 0
     for scene, downscale in scenes:
         argv = [ctx.python, "benchmarks/bench_gpu.py", "--scene", str(ctx.data / scene), "--device", ctx.device,

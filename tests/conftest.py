@@ -57,3 +57,23 @@ def shared_data_is_never_written():
     after = _shared_listing()
     changed = sorted(set(before.items()) ^ set(after.items()))
     assert not changed, f"the test suite wrote into {SHARED_DATA}: {changed[:10]}"
+
+
+#: the files that take longest (minutes: each trains studies in subprocesses), started first so that under
+#: pytest-xdist (`make test`, --dist loadfile) the other process works through the short files meanwhile instead of
+#: waiting at the end for the last long one; pytest --durations in every CI log says which they are
+HEAVIEST_FIRST = ("tests/test_gpu_campaign.py", "tests/cli/test_bench_ray.py", "tests/cli/test_bench_resume.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(HEAVIEST_FIRST)}
+    root = Path(config.rootpath)
+
+    def heaviness(item) -> int:
+        try:
+            name = Path(item.fspath).resolve().relative_to(root).as_posix()
+        except ValueError:
+            return len(rank)
+        return rank.get(name, len(rank))
+
+    items.sort(key=heaviness)  # stable: the rest keep their order
