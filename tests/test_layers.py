@@ -14,7 +14,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "kc_splatfacto"
 #: lower index = lower layer; a module may import its own layer and lower ones. The top-level modules are leaves any
 #: layer may use: errors (imports nothing of the package), atomic (nothing), backend (errors), lpips (nothing),
 #: registry (errors), metrics (lpips). Every top-level module and subpackage must be in one layer.
-LAYERS = ["errors", "settings", "atomic", "backend", "lpips", "registry", "metrics", "render", "losses", "data", "model", "engine",
+LAYERS = ["errors", "settings", "atomic", "backend", "lpips", "registry", "metrics", "render", "losses", "data", "model", "plan", "engine",
           "analysis", "study", "viewer", "cli", "nerfstudio_plugin"]
 
 
