@@ -57,6 +57,7 @@ from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR
 from kc_splatfacto.engine.config_file import read_config_file
 from kc_splatfacto.engine.datamanager import install_dataparser_subcommands
 from kc_splatfacto.engine.run_guard import scene_of
+from kc_splatfacto.engine.scene_planning import plan_only
 from kc_splatfacto.engine.trainer import TrainerConfig, TrainingDivergedError
 from kc_splatfacto.errors import UserError
 from kc_splatfacto.model.strategy import NoGaussiansLeftError
@@ -171,6 +172,8 @@ def expand_bare_flags(argv: list[str]) -> list[str]:
 def main(argv: list[str]) -> int:
     if not argv:
         argv = ["--help"]
+    plan_only_asked = PLAN_ONLY_FLAG in argv
+    argv = [a for a in argv if a != PLAN_ONLY_FLAG]
     if is_run_folder_resume(argv):
         config = resume_config(expand_bare_flags(argv))
     else:
@@ -180,6 +183,13 @@ def main(argv: list[str]) -> int:
                     f"(kc-train {LOAD_DIR_FLAG} RUN)" if _flag_value(argv, LOAD_DIR_FLAG) is not None else "")
             raise UserError(f"no scene given: pass --data PATH (a scene folder, or 'demo' for the demo scene){hint}")
 
+    if plan_only_asked:
+        scene_plan = plan_only(config)
+        print(scene_plan.table())
+        if config.pipeline.model.plan != "on":
+            print(f"kc-train: the plan is off for this run ({PLAN_SWITCH}): these choices are not applied; "
+                  "--pipeline.model.plan on applies them")
+        return 0
     trainer = config.setup()  # every value checked, with its dotted name, before the device, scene or run folder
     viewer = attach_viewer(trainer) if config.viewer.enabled else None
     try:
@@ -214,6 +224,9 @@ def main(argv: list[str]) -> int:
     return 0
 
 
+PLAN_ONLY_FLAG = "--plan-only"
+"""print the scene plan the run would get (seconds: the training split is read, nothing is trained or written)"""
+PLAN_SWITCH = "--pipeline.model.plan off"
 LOAD_DIR_FLAG = "--load-dir"
 LOAD_CONFIG_FLAG = "--load-config"
 #: fields that say what a resume continues from, not how the run trains: set from the command line, never reported

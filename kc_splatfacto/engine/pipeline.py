@@ -28,8 +28,8 @@ class PipelineConfig:
     model: SplatfactoModelConfig = field(default_factory=SplatfactoModelConfig)
 
     def setup(self, *, device: torch.device | str = "cpu", seed: int = 42,
-              dataparser: DataParserConfig | None = None) -> Pipeline:
-        return Pipeline(self, device=device, seed=seed, dataparser=dataparser)
+              dataparser: DataParserConfig | None = None, datamanager: DataManager | None = None) -> Pipeline:
+        return Pipeline(self, device=device, seed=seed, dataparser=dataparser, datamanager=datamanager)
 
 
 class Pipeline:
@@ -40,12 +40,15 @@ class Pipeline:
         device: where the model lives.
         seed: seed of the training-image order.
         dataparser: the run's resolved dataparser config (see :meth:`DataManagerConfig.setup`).
+        datamanager: the data manager already built from ``config.datamanager`` (the trainer's, which the scene plan
+            measured before the model was configured), or None to build it here.
     """
 
     def __init__(self, config: PipelineConfig, *, device: torch.device | str = "cpu", seed: int = 42,
-                 dataparser: DataParserConfig | None = None):
+                 dataparser: DataParserConfig | None = None, datamanager: DataManager | None = None):
         self.config = config
-        self.datamanager: DataManager = config.datamanager.setup(seed=seed, dataparser=dataparser)
+        self.datamanager: DataManager = (
+            datamanager if datamanager is not None else config.datamanager.setup(seed=seed, dataparser=dataparser))
         train_outputs = self.datamanager.train_outputs
         self.model: SplatfactoModel = config.model.setup(
             scene_scale=float(train_outputs.scene_scale),

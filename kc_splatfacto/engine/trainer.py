@@ -47,10 +47,12 @@ from kc_splatfacto.engine.run_guard import (
     plan_run,
     recorded_dataparser,
 )
+from kc_splatfacto.engine.scene_planning import apply_recorded_plan, plan_is_on, plan_scene
 from kc_splatfacto.engine.signals import install_stop_handlers, restore_handlers
 from kc_splatfacto.engine.training_state import StepHooks, StepResult, StepVerdict, TrainingState
 from kc_splatfacto.engine.validation import validate_config
 from kc_splatfacto.lpips import NETWORKS
+from kc_splatfacto.plan.scene_plan import apply_choices
 from kc_splatfacto.settings import drawn_from, each, integer, path_component, setting
 
 PARAMETER_SCAN_EVERY = 100
@@ -274,10 +276,18 @@ class Trainer:
     def setup(self) -> None:
         cfg = self.config
         check_backends(cfg.logging)  # a logging package that cannot load: refused before any folder is made
+        apply_recorded_plan(cfg)  # a resume continues with the plan its run recorded
         plan = plan_run(cfg, map_location=self.device)  # foreign resumes, unwritable folders refused before data loads
         self._dataparser = plan.dataparser
         cfg.machine.seed_everything()
-        self._pipeline = cfg.pipeline.setup(device=self.device, seed=cfg.machine.seed, dataparser=plan.dataparser)
+        datamanager = cfg.pipeline.datamanager.setup(seed=cfg.machine.seed, dataparser=plan.dataparser)
+        self.scene_plan = None
+        if plan_is_on(cfg) and plan.checkpoint is None:
+            self.scene_plan = plan_scene(cfg, datamanager)
+            apply_choices(cfg, self.scene_plan.choices())
+            print(self.scene_plan.table(), flush=True)
+        self._pipeline = cfg.pipeline.setup(device=self.device, seed=cfg.machine.seed, dataparser=plan.dataparser,
+                                            datamanager=datamanager)
         check_training_image_sizes(self.datamanager, cfg.pipeline.model)
         announce_seed_points(self.datamanager, cfg.pipeline.model)
         self.model.train()
@@ -285,7 +295,9 @@ class Trainer:
         checkpoint = plan.checkpoint
         self._run_dir = plan.run_dir or self._new_run_dir()
         self.run_dir.mkdir(parents=True, exist_ok=True)
-        save_config(recorded_config(cfg, plan.dataparser), self.run_dir / "config.yml")
+        save_config(recorded_config(cfg, plan.dataparser), self.run_dir / "config.yml")  # the planned values
+        if self.scene_plan is not None:
+            self.scene_plan.write(self.run_dir)
         self.datamanager.save_dataparser_transform(self.run_dir / "dataparser_transforms.json")
         if checkpoint is not None:
             self._restore(checkpoint)
