@@ -55,6 +55,7 @@ from kc_splatfacto.engine.config_file import check_lines_kept, check_method_name
 from kc_splatfacto.engine.datamanager import DataManager
 from kc_splatfacto.errors import ResumeError, UserError
 from kc_splatfacto.metrics import SSIM_WINDOW
+from kc_splatfacto.plan.scene_plan import leaves
 
 if TYPE_CHECKING:  # annotations only: the trainer imports this module
     from kc_splatfacto.engine.trainer import TrainerConfig
@@ -217,16 +218,6 @@ RESUMABLE_FIELDS = (
 PARSER_LOCATION_FIELDS = ("data", "cache_dir", "demo_cache_dir")
 
 
-def _leaves(value: Any, prefix: str = "") -> dict[str, Any]:
-    """{dotted name: value} of every non-dataclass field under ``value``."""
-    if not dataclasses.is_dataclass(value) or isinstance(value, type):
-        return {prefix.rstrip("."): value}
-    out: dict[str, Any] = {}
-    for f in dataclasses.fields(value):
-        out.update(_leaves(getattr(value, f.name), f"{prefix}{f.name}."))
-    return out
-
-
 def _same(a: Any, b: Any) -> bool:
     if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
         return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
@@ -240,7 +231,7 @@ def setting_differences(stored: TrainerConfig, current: TrainerConfig,
     every field but :data:`RESUMABLE_FIELDS`, and the resolved dataparser's settings (its scene is compared by
     :func:`differences`; the dataparser configs as there)."""
     found = []
-    stored_leaves, current_leaves = _leaves(stored), _leaves(current)
+    stored_leaves, current_leaves = leaves(stored), leaves(current)
     for name in sorted(set(stored_leaves) | set(current_leaves)):
         if any(name == f or name.startswith(f + ".") for f in RESUMABLE_FIELDS):
             continue
@@ -250,7 +241,7 @@ def setting_differences(stored: TrainerConfig, current: TrainerConfig,
     stored_parser = stored_parser if stored_parser is not None else comparable_dataparser(stored)
     current_parser = current_parser if current_parser is not None else comparable_dataparser(current)
     if type(stored_parser) is type(current_parser) and dataclasses.is_dataclass(stored_parser):
-        a_fields, b_fields = _leaves(stored_parser), _leaves(current_parser)
+        a_fields, b_fields = leaves(stored_parser), leaves(current_parser)
         for name in sorted(set(a_fields) | set(b_fields)):
             if name in PARSER_LOCATION_FIELDS:
                 continue
