@@ -46,6 +46,7 @@ import numpy as np
 
 from kc_splatfacto.analysis.along_training import write_along_training
 from kc_splatfacto.analysis.diagnostics import plot_kurtosis_gap_comparison
+from kc_splatfacto.analysis.plans import write_plan_table
 from kc_splatfacto.analysis.report import eval_rows, plot_gradient_shares, write_report
 from kc_splatfacto.atomic import atomic_write_text
 from kc_splatfacto.cli.main import INTERRUPTED_EXIT, check_folder_can_hold, did_you_mean, path_flag, run_cli
@@ -66,13 +67,15 @@ from kc_splatfacto.errors import UserError
 from kc_splatfacto.registry import discover_methods
 from kc_splatfacto.study.machine import machine_kinds
 from kc_splatfacto.study.runners import RayRunner, SerialRunner, StudyInterrupted
-from kc_splatfacto.study.runs import RunSpec, check_same_settings, is_finished
+from kc_splatfacto.study.runs import RunSpec, check_same_settings, final_step, is_finished
 
 
 class BenchArgumentError(UserError, ValueError):
     """A kc-bench argument that cannot work (a budget below 1, a bad --set, an unknown method)."""
 
 DEFAULT_METHODS = ("splatfacto", "kc-splatfacto")
+ARM_VARIANTS = {"plan": "on", "fixed": "off"}
+"""``METHOD+plan`` and ``METHOD+fixed``: the registered method with the scene plan (``pipeline.model.plan``) on or off"""
 DEFAULT_BASELINE = "splatfacto"
 #: the report folder when --output-dir is not given
 DEFAULT_OUTPUT_DIR = Path("bench")
@@ -94,6 +97,25 @@ def evaluation_steps(max_steps: int, num: int, extra: Sequence[int] = ()) -> tup
     if outside:
         raise BenchArgumentError(f"--eval-at-steps {outside}: evaluation steps must lie in [1, --max-num-iterations={max_steps}]")
     return tuple(sorted(set(log_spaced_steps(max_steps, num)) | {int(s) for s in extra}))
+
+
+def split_arm(arm: str) -> tuple[str, str | None]:
+    """``'kc-splatfacto+plan'`` -> ``('kc-splatfacto', 'plan')``; a plain method name -> ``(name, None)``."""
+    method, sep, variant = arm.rpartition("+")
+    return (method, variant) if sep and method else (arm, None)
+
+
+def check_arms(arms: Sequence[str], methods_available: dict) -> None:
+    """Every ``--methods`` entry is a registered method, or one with a known ``+VARIANT`` (:data:`ARM_VARIANTS`)."""
+    unknown = []
+    for arm in arms:
+        method, variant = split_arm(arm)
+        if method not in methods_available or (variant is not None and variant not in ARM_VARIANTS):
+            unknown.append(arm)
+    if unknown:
+        variants = ", ".join(f"METHOD+{v}" for v in ARM_VARIANTS)
+        raise BenchArgumentError(f"unknown method(s) {unknown}; registered: {', '.join(methods_available) or 'none'} "
+                                 f"(and {variants}: the scene plan on or off)")
 
 
 def scene_downscale_factors(data: Sequence[str], factors: Sequence[int] | None) -> dict[str, int | None]:
@@ -185,7 +207,8 @@ def plan_runs(args: argparse.Namespace, methods_available: dict, runs_dir: Path)
     for seed in args.seeds:
         for data in args.data:
             scene = scene_name(data)
-            for method in args.methods:
+            for arm in args.methods:
+                method, variant = split_arm(arm)
                 config = build_run_config(
                     methods_available[method].config, method=method,
                     data=Path(data) if str(data) == "demo" else Path(data).absolute(), seed=seed,
@@ -194,9 +217,12 @@ def plan_runs(args: argparse.Namespace, methods_available: dict, runs_dir: Path)
                     device=args.device, overrides=args.set,
                 )
                 config.steps_per_save = args.steps_per_save if args.steps_per_save > 0 else args.max_num_iterations
-                check_run_config(config, method)
-                label_dir = runs_dir / scene / method / f"seed{seed}"
-                specs.append(RunSpec(index=len(specs), scene=scene, method=method, seed=seed,
+                if variant is not None:  # the method's own folder, beside its other arms: seed0+plan, seed0+fixed
+                    config.pipeline.model.plan = ARM_VARIANTS[variant]
+                    config.timestamp = f"seed{seed}+{variant}"
+                check_run_config(config, arm)
+                label_dir = runs_dir / scene / method / config.timestamp
+                specs.append(RunSpec(index=len(specs), scene=scene, method=arm, seed=seed,
                                      run_dir=label_dir.absolute(), config=config, max_steps=args.max_num_iterations,
                                      label_dir=str(label_dir)))
     return specs
@@ -291,8 +317,9 @@ class Study:
         views = []
         for spec in self.specs:
             result = self.results.get(spec.index)
+            end = final_step(spec.run_dir, spec.max_steps)
             final = next((r for r in reversed(result["records"]) if r.get("kind") == "eval"
-                          and r.get("step") == spec.max_steps), None) if result else None
+                          and r.get("step") == end), None) if result else None
             if final is None:
                 continue
             for view in final.get("per_image", []):
@@ -306,9 +333,7 @@ class Study:
 
 def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
     methods_available = discover_methods()
-    unknown = [m for m in args.methods if m not in methods_available]
-    if unknown:
-        raise BenchArgumentError(f"unknown method(s) {unknown}; registered: {', '.join(methods_available) or 'none'}")
+    check_arms(args.methods, methods_available)
     out_dir = Path(args.output_dir)
     runs_dir = Path(args.runs_dir) if args.runs_dir else out_dir / "runs"
     specs = plan_runs(args, methods_available, runs_dir)
@@ -340,6 +365,7 @@ def run_bench(args: argparse.Namespace, argv: Sequence[str]) -> dict[str, Path]:
         if runs:
             study.paths.update(write_kurtosis_gap_plots(runs, out_dir))
             study.paths.update(write_gradient_share_plots(runs, out_dir))
+            study.paths.update(write_plan_table(runs, out_dir))
     paths = dict(study.paths)
     paths["command"] = out_dir / "command.txt"
     paths["runs"] = out_dir / "runs.json"
@@ -514,7 +540,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Train methods x scenes x seeds under one step budget; report test quality against training time.",
     )
     parser.add_argument("--data", nargs="+", required=True, help="scene folder(s), or 'demo'")
-    parser.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS), help="registered method names")
+    parser.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS), help="registered method names; METHOD+plan or METHOD+fixed: that method with the scene plan on or off (docs/plan.md)")
     parser.add_argument("--baseline", default=None,
                         help=f"method the deltas are taken against (default: {DEFAULT_BASELINE} when among --methods)")
     parser.add_argument("--also-against", nargs="+", default=[], metavar="METHOD",

@@ -8,6 +8,7 @@ interrupted, start it again when it has no checkpoint. A folder trained with oth
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import shutil
@@ -26,9 +27,10 @@ from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.run_guard import differences
 from kc_splatfacto.engine.trainer import Trainer
 from kc_splatfacto.errors import UserError
+from kc_splatfacto.plan.scene_plan import PLAN_FILE, read_choices, reapply_choices
 from kc_splatfacto.study.machine import MACHINE_FILE, read_machines, record_machine
 
-RESULT_FILES = ("config.yml", "metrics.jsonl", "dataparser_transforms.json", MACHINE_FILE)
+RESULT_FILES = ("config.yml", "metrics.jsonl", "dataparser_transforms.json", MACHINE_FILE, PLAN_FILE)
 """a run's small files, sent back by a task for a study whose machines share no filesystem (never checkpoints)"""
 TIMING_KEYS = frozenset({"elapsed_s", "train_s", "train_cpu_s", "render_fps", "path"})
 """record fields that measure the machine, not the training: they differ between two runs with equal numbers"""
@@ -62,12 +64,16 @@ class RunSpec:
 def check_same_settings(run_dir: Path, config: Any) -> None:
     """A run folder the study would reuse or continue must have been trained with the settings ``config`` asks for:
     model, seed, optimizers, scene and dataparser with its settings (e.g. the downscale factor), as its
-    ``config.yml`` records them. Anything else is a :class:`StudySettingsError` naming the folder and what differs,
+    ``config.yml`` records them (with the scene plan's choices, where the run has a ``plan.json``). Anything else is a :class:`StudySettingsError` naming the folder and what differs,
     never a finished run of another setting silently reported as this one."""
     saved_path = Path(run_dir) / "config.yml"
     if not saved_path.is_file():
         return
     saved = load_config(saved_path)
+    plan = Path(run_dir) / PLAN_FILE
+    if plan.is_file() and config.pipeline.model.plan == "on":  # config.yml records the planned values
+        config = copy.deepcopy(config)
+        reapply_choices(config, read_choices(plan))
     mismatch = [
         name for name, a, b in (
             ("pipeline.model", dataclasses.asdict(saved.pipeline.model), dataclasses.asdict(config.pipeline.model)),
@@ -126,8 +132,19 @@ def set_aside_first_attempt(run_dir: Path) -> None:
             (run_dir / name).replace(run_dir / aside)
 
 
+def final_step(run_dir: Path, max_steps: int) -> int:
+    """The step a run of budget ``max_steps`` ends at: ``max_steps``, or the scene plan's end where the run's
+    ``plan.json`` planned it for that budget (the plan stops earlier, never later; a plan made for another budget
+    does not say where this one ends)."""
+    path = Path(run_dir) / PLAN_FILE
+    if not path.is_file():
+        return max_steps
+    asked, chosen = read_choices(path).get("max_num_iterations", (None, None))
+    return int(chosen) if asked == max_steps and chosen is not None else max_steps
+
+
 def is_finished(run_dir: Path, max_steps: int) -> bool:
-    """Whether ``run_dir``'s log holds the evaluation of step ``max_steps`` (the run is complete)."""
+    """Whether ``run_dir``'s log holds the evaluation of its final step (:func:`final_step`: the run is complete)."""
     log = Path(run_dir) / "metrics.jsonl"
     if not log.is_file():
         return False
@@ -135,7 +152,8 @@ def is_finished(run_dir: Path, max_steps: int) -> bool:
         records = read_metrics(log)
     except ValueError:
         return False
-    return any(r.get("kind") == "eval" and int(r.get("step", -1)) == max_steps for r in records)
+    end = final_step(run_dir, max_steps)
+    return any(r.get("kind") == "eval" and int(r.get("step", -1)) == end for r in records)
 
 
 def execute_run(spec: RunSpec, *, resume: bool, send_files: bool = False) -> dict[str, Any]:
