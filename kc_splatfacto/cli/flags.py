@@ -30,15 +30,19 @@ from kc_splatfacto.registry import discover_dataparsers
 
 #: the dataparser subcommand field (its subcommands' flags have no prefix) and where it sits in a TrainerConfig
 DATAPARSER_FIELD = "pipeline.datamanager.dataparser"
-#: the flags a method's short help explains, run flags first (the rest are listed by name)
-SHORT_HELP_FLAGS = (
-    "--data", "--max-num-iterations", "--output-dir", "--experiment-name", "--load-dir",
-    "--steps-per-eval-all-images", "--machine.device", "--machine.seed",
-    "--pipeline.model.steps-scale", "--pipeline.model.sh-degree", "--pipeline.model.ssim-lambda",
-    "--pipeline.model.max-num-gaussians", "--pipeline.model.frequency.wavelet-weight",
-    "--pipeline.model.frequency.kc-weight", "--pipeline.model.frequency.cbc-weight", "--pipeline.model.frequency.wave",
-    "--pipeline.model.frequency.wavelet-levels", "--pipeline.model.rasterizer",
+#: the flags a method's short help explains, one group each (the rest are listed by name)
+SHORT_HELP_GROUPS = (
+    ("run", ("--data", "--max-num-iterations", "--output-dir", "--load-dir", "--steps-per-eval-all-images",
+             "--machine.device", "--machine.seed")),
+    ("model", ("--pipeline.model.steps-scale", "--pipeline.model.sh-degree", "--pipeline.model.max-num-gaussians", "--pipeline.model.frequency.wavelet-weight",
+               "--pipeline.model.frequency.kc-weight", "--pipeline.model.frequency.cbc-weight",
+               "--pipeline.model.frequency.wave", "--pipeline.model.frequency.wavelet-levels",
+               "--pipeline.model.rasterizer")),
+    ("scene plan", ("--pipeline.model.plan", "--pipeline.model.plan-skip", "--plan-only")),
 )
+SHORT_HELP_FLAGS = tuple(name for _, names in SHORT_HELP_GROUPS for name in names)
+#: flags of kc-train itself, not of the config (``cli/train.py`` reads them): (metavar, help)
+COMMAND_FLAGS = {"--plan-only": ("", "print the scene plan and stop (trains nothing)")}
 #: flags of earlier versions and where their setting lives now (the frequency-loss settings moved into
 #: ``pipeline.model.frequency``, the rasterizer's name was rasterization-backend): named in the error, so an old command
 #: line says what to type
@@ -47,9 +51,12 @@ MOVED_FLAGS = {
     for name in ("wavelet-weight", "kc-weight", "cbc-weight", "wave", "wavelet-levels", "wavelet-mode",
                  "wavelet-weighting", "kc-supervised", "cbc-supervised", "cbc-correlation")
 } | {"--pipeline.model.rasterization-backend": "--pipeline.model.rasterizer", "--pipeline.datamanager.data": "--data"}
-SHORT_HELP_RUN_FLAGS = 8
 #: help lines the short help words differently from the field's docstring
-SHORT_HELP_TEXT = {"--data": "scene folder (SPARS3R, COLMAP, transforms.json), or 'demo'"}
+SHORT_HELP_TEXT = {
+    "--data": "scene folder (SPARS3R, COLMAP, transforms.json), or 'demo'",
+    "--pipeline.model.plan": "'on': fit to the scene, 'off': the paper's recipe",
+    "--pipeline.model.plan-skip": "decisions kept as configured",
+}
 #: fields the short help does not name one by one: learning rates and schedules (named by group), fields a method
 #: fixes
 SHORT_HELP_HIDDEN_PREFIXES = ("optimizers.", "method-name", "timestamp")
@@ -265,15 +272,19 @@ def short_help(method: str, description: str, config: Any, prog: str = "kc-train
     flags = [Flag(SCENE_FLAG, "PATH", None, SHORT_HELP_TEXT[SCENE_FLAG]), *config_flags(config)]
     featured = {f.name: f for f in flags if f.name in SHORT_HELP_FLAGS}
     lines = [f"usage: {prog} {method} --data SCENE [OPTIONS] [DATAPARSER [DATAPARSER OPTIONS]]", "", description, ""]
-    for title, names in (("run", SHORT_HELP_FLAGS[:SHORT_HELP_RUN_FLAGS]), ("model", SHORT_HELP_FLAGS[SHORT_HELP_RUN_FLAGS:])):
+    for title, names in SHORT_HELP_GROUPS:
         lines.append(f"{title} options:")
         for name in names:
-            if name not in featured:
+            if name in COMMAND_FLAGS:
+                metavar, text = COMMAND_FLAGS[name]
+            elif name in featured:
+                flag = featured[name]
+                metavar = flag.metavar
+                text = f"{SHORT_HELP_TEXT.get(flag.name, flag.help)} (default: {_format_default(flag.default)})"
+            else:
                 continue
-            flag = featured[name]
-            left = f"  {flag.name} {flag.metavar}"
+            left = f"  {name} {metavar}"
             left = f"{left:<{FLAG_COLUMN}}" if len(left) < FLAG_COLUMN else f"{left} "
-            text = f"{SHORT_HELP_TEXT.get(flag.name, flag.help)} (default: {_format_default(flag.default)})"
             room = SHORT_HELP_WIDTH - len(left)
             lines.append(left + (text if len(text) <= room else text[:room - 3] + "..."))
         lines.append("")
@@ -290,8 +301,8 @@ def short_help(method: str, description: str, config: Any, prog: str = "kc-train
     optimizer = [f for f in flags if f.name.startswith("--optimizers.")]
     if optimizer:
         groups_ = sorted({f.name.split(".")[1] for f in optimizer})
-        lines.extend(_wrap(f"  learning rates and schedules ({len(optimizer)} flags): --optimizers.GROUP.optimizer.lr, "
-                           f"--optimizers.GROUP.scheduler.lr-final, ... for GROUP in ", groups_, SHORT_HELP_WIDTH))
+        lines.extend(_wrap(f"  learning rates and schedules ({len(optimizer)} flags): --optimizers.GROUP.{{optimizer.lr, "
+                           "scheduler.lr-final, ...} for GROUP in ", groups_, SHORT_HELP_WIDTH))
     lines.append("")
     lines.extend(_wrap(f"dataparser (a subcommand after the options, default auto; `{prog} {method} colmap --help` "
                        "lists its options): ", list(dataparser_flags()), SHORT_HELP_WIDTH))

@@ -79,7 +79,12 @@ def test_method_help_fits_on_a_screen_with_one_data_flag(capsys):
     lines = stdout.rstrip().splitlines()
     assert len(lines) <= SCREEN_LINES and max(len(line) for line in lines) <= SCREEN_COLUMNS
     assert len([line for line in lines if re.match(r"\s*--data\b", line)]) == 1
-    assert "scheduler" not in stdout.replace("--optimizers.GROUP.scheduler.lr-final", "")
+    assert "scheduler" not in stdout.replace("--optimizers.GROUP.{optimizer.lr, scheduler.lr-final", "")
+    # the scene plan's switch (the paper's fixed settings one flag away), its skips and --plan-only, one line each
+    plan_section = stdout.split("scene plan options:\n", 1)[1].split("\n\n", 1)[0].splitlines()
+    assert [line.split()[0] for line in plan_section] == ["--pipeline.model.plan", "--pipeline.model.plan-skip",
+                                                          "--plan-only"]
+    assert "{on,off}" in plan_section[0] and "(default: off)" in plan_section[0]
     # every flag of the method is named somewhere on the screen (featured, or in a group's brace list)
     flags = [f.name for f in config_flags(discover_methods()["kc-splatfacto"].config)
              if not f.name.startswith(("--optimizers.", "--method-name", "--timestamp"))]
