@@ -61,6 +61,8 @@ def main() -> int:
     parser.add_argument("--scene", type=Path, default=SHARED_DATA / "castle-P30")
     parser.add_argument("--downscale", type=int, default=4)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--plan", choices=("off", "on"), default="off",
+                        help="the scene plan (default off: the fixed settings, whose hashes docs/training.md lists)")
     parser.add_argument("--threads", type=int, default=None,
                         help="torch and numba threads (set in the environment before they load; default: all cores)")
     args = parser.parse_args()
@@ -80,6 +82,7 @@ def main() -> int:
     config.logging.progress_bar = False
     config.machine.seed = args.seed
     config.machine.device = "cpu"
+    config.pipeline.model.plan = args.plan
     with tempfile.TemporaryDirectory() as tmp:
         config.output_dir = Path(tmp)
         t0 = time.perf_counter()

@@ -54,9 +54,11 @@ LOWPASS = dataclasses.replace(FrequencyLossConfig.off(), lowpass_weight=1.0, wav
 
 def _trainer(method_name: str, frequency: FrequencyLossConfig | None = None, **model_overrides) -> TrainerConfig:
     """Splatfacto's TrainerConfig named ``method_name`` with these model fields (``frequency``: the wavelet losses;
-    None: off)."""
+    None: off), with the scene plan on (``--pipeline.model.plan off``: the paper's and Splatfacto's fixed settings,
+    which are SplatfactoModelConfig's own default, so a config.yml written before the plan existed reads as one)."""
     config = TrainerConfig(method_name=method_name)
     frequency = dataclasses.replace(frequency) if frequency is not None else FrequencyLossConfig.off()  # own copy
+    model_overrides.setdefault("plan", "on")
     config.pipeline.model = dataclasses.replace(SplatfactoModelConfig(), frequency=frequency, **model_overrides)
     return config
 

@@ -17,7 +17,8 @@ TINY_WIDTH, TINY_HEIGHT = 64, 48
 
 def tiny_demo_config(method: str, output_dir: Path, iterations: int = 60, steps_scale: float = 0.02,
                      **model_overrides) -> TrainerConfig:
-    """``method``'s config on the 64x48 demo scene, schedules compressed, no progress bar, no periodic eval."""
+    """``method``'s config on the 64x48 demo scene, schedules compressed, no progress bar, no periodic eval, with
+    the fixed settings (the scene plan off: a test of the plan passes ``plan="on"``)."""
     config: TrainerConfig = copy.deepcopy(discover_methods()[method].config)
     config.pipeline.datamanager.dataparser = DemoDataParserConfig(width=TINY_WIDTH, height=TINY_HEIGHT)
     config.output_dir = Path(output_dir)
@@ -33,6 +34,7 @@ def tiny_demo_config(method: str, output_dir: Path, iterations: int = 60, steps_
     model.steps_scale = steps_scale
     model.num_downscales = 0
     model.max_num_gaussians = 20000
+    model.plan = "off"
     for key, value in model_overrides.items():
         if not hasattr(model, key):
             raise AttributeError(f"model config has no field {key}")

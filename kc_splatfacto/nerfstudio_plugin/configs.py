@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from pathlib import Path
 from types import ModuleType
-from typing import Any, Type
+from typing import Any, Literal, Type
 
 import torch
 from nerfstudio.configs.base_config import ViewerConfig
@@ -19,12 +20,15 @@ from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatama
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.engine import schedulers
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
-from nerfstudio.engine.trainer import TrainerConfig
+from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from kc_splatfacto.nerfstudio_plugin.model import KCSplatfactoModelConfig
+from kc_splatfacto.nerfstudio_plugin.plan import start_planned_run
 
+CARRIED = ("frequency", "plan", "plan_skip")
+"""model fields every method carries into nerfstudio as the project's method sets them, whatever its splatfacto's"""
 PLAIN_SPLATFACTO = "splatfacto-cpu"
 """the nerfstudio name of the project's ``splatfacto`` (the frequency-loss weights 0)"""
 
@@ -50,10 +54,28 @@ class ExponentialDecaySchedulerConfig(schedulers.ExponentialDecaySchedulerConfig
     _target: Type = field(default_factory=lambda: ExponentialDecayScheduler)
 
 
-def splatfacto_trainer(method_name: str, model: KCSplatfactoModelConfig) -> TrainerConfig:
+class PlanningTrainer(Trainer):
+    """nerfstudio's ``Trainer`` that makes the scene plan (:mod:`.plan`) before it builds the pipeline, against the
+    plugin's registered config of the run's method (what the user set wins)."""
+
+    def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
+        if self.local_rank == 0:
+            spec = method_specifications().get(self.config.method_name)
+            start_planned_run(self.config, Path(self.base_dir), spec.config if spec is not None else None)
+        super().setup(test_mode)
+
+
+@dataclass
+class PlanningTrainerConfig(TrainerConfig):
+    """nerfstudio's ``TrainerConfig`` whose trainer makes the scene plan (:class:`PlanningTrainer`)."""
+
+    _target: Type = field(default_factory=lambda: PlanningTrainer)
+
+
+def splatfacto_trainer(method_name: str, model: KCSplatfactoModelConfig) -> PlanningTrainerConfig:
     """nerfstudio 1.1.5's ``method_configs["splatfacto"]`` with ``model`` and ``method_name`` (the test suite compares
-    the two field by field with nerfstudio installed)."""
-    return TrainerConfig(
+    the two field by field with nerfstudio installed), its trainer the one that makes the scene plan."""
+    return PlanningTrainerConfig(
         method_name=method_name,
         steps_per_eval_image=100,
         steps_per_eval_batch=0,
@@ -95,13 +117,13 @@ def splatfacto_trainer(method_name: str, model: KCSplatfactoModelConfig) -> Trai
 
 
 def nerfstudio_model_config(project_model: Any, project_baseline: Any) -> KCSplatfactoModelConfig:
-    """The plugin's model config for one of the project's methods: the frequency-loss settings of ``project_model``
-    (the project's model config), and each other field in which it differs from the project's ``splatfacto``
-    (``project_baseline``, whose fields are nerfstudio's defaults). A field nerfstudio's Splatfacto does not have is
-    an error: that method cannot be the same method in nerfstudio."""
+    """The plugin's model config for one of the project's methods: the frequency-loss and scene-plan settings
+    (:data:`CARRIED`) of ``project_model`` (the project's model config), and each other field in which it differs
+    from the project's ``splatfacto`` (``project_baseline``, whose fields are nerfstudio's defaults). A field
+    nerfstudio's Splatfacto does not have is an error: that method cannot be the same method in nerfstudio."""
     ours = {field.name: getattr(project_model, field.name) for field in dataclasses.fields(project_model)}
     baseline = {field.name: getattr(project_baseline, field.name) for field in dataclasses.fields(project_baseline)}
-    changes = {name: value for name, value in ours.items() if name == "frequency" or value != baseline[name]}
+    changes = {name: value for name, value in ours.items() if name in CARRIED or value != baseline[name]}
     changes["frequency"] = dataclasses.replace(changes["frequency"])  # the plugin's own copy
     known = {field.name for field in dataclasses.fields(KCSplatfactoModelConfig)}
     foreign = sorted(set(changes) - known)

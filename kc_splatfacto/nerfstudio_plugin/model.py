@@ -18,7 +18,7 @@ gsplat's relocation kernel on CUDA), and adds its two loss terms.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Dict, Literal, Optional, Type, Union
+from typing import Any, Dict, Literal, Optional, Tuple, Type, Union
 
 import torch
 from nerfstudio.cameras.cameras import Cameras
@@ -26,6 +26,7 @@ from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel, SplatfactoMode
 
 from kc_splatfacto.losses.frequency import FrequencyLoss, FrequencyLossConfig
 from kc_splatfacto.model.mcmc import MCMCStrategy
+from kc_splatfacto.model.splatfacto import PlanDecision
 from kc_splatfacto.nerfstudio_plugin.cpu import (
     LPIPS_INSTALL,
     OfflineLPIPS,
@@ -56,6 +57,12 @@ class KCSplatfactoModelConfig(SplatfactoModelConfig):
     """mcmc: weight of the mean opacity in the loss"""
     mcmc_scale_reg: float = 0.01
     """mcmc: weight of the mean scale in the loss"""
+    plan: Literal["on", "off"] = "off"
+    """'on': the scene plan sets the step count (the asked one a budget), the warm-up, the CBC term and the
+    background from measurements of the training views (kc-train's rules; the plugin's trainer makes it, .plan);
+    'off': the fixed settings"""
+    plan_skip: Tuple[PlanDecision, ...] = ()
+    """decisions of the scene plan that keep this config's value (schedule, downscales, cbc, background)"""
 
 
 def on_cuda(device: Any) -> bool:

@@ -228,7 +228,7 @@ def make_scene_plan(config: Any, images: Sequence[torch.Tensor], cameras: Camera
     nominal = VISITS_PER_VIEW * coverage.views / max(coverage.coverage, 1e-6)
     floor = planned_downscales * model.resolution_schedule + FULL_RESOLUTION_STEPS
     nominal_end = max(math.ceil(nominal / END_QUANTUM) * END_QUANTUM, floor)
-    end = min(scale_steps(nominal_end, model.steps_scale), config.max_num_iterations)
+    end = min(scale_steps(nominal_end, getattr(model, "steps_scale", 1.0)), config.max_num_iterations)  # (ns-train's has none)
     decide("schedule", "max_num_iterations",
            f"{coverage.views} views, coverage {coverage.coverage:.2f} ({coverage.points} points)",
            f"{VISITS_PER_VIEW} x views / coverage, within warm-up..asked", end)

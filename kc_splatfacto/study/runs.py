@@ -82,8 +82,12 @@ def check_same_settings(run_dir: Path, config: Any) -> None:
         ) if a != b
     ] + differences(saved, config, parser_settings=True)
     if mismatch:
+        hint = ""
+        if saved.pipeline.model.plan != config.pipeline.model.plan:  # e.g. a study of before the plan was on
+            hint = (f" (the scene plan: {saved.pipeline.model.plan} in that run, {config.pipeline.model.plan} here; "
+                    f"--set pipeline.model.plan={saved.pipeline.model.plan} asks for that run's)")
         raise StudySettingsError(
-            f"--resume: {run_dir} was trained with another {', '.join(mismatch)} than this command asks for; "
+            f"--resume: {run_dir} was trained with another {', '.join(mismatch)} than this command asks for{hint}; "
             f"rerun with the original command, or pass another --runs-dir"
         )
 

@@ -84,7 +84,7 @@ def test_method_help_fits_on_a_screen_with_one_data_flag(capsys):
     plan_section = stdout.split("scene plan options:\n", 1)[1].split("\n\n", 1)[0].splitlines()
     assert [line.split()[0] for line in plan_section] == ["--pipeline.model.plan", "--pipeline.model.plan-skip",
                                                           "--plan-only"]
-    assert "{on,off}" in plan_section[0] and "(default: off)" in plan_section[0]
+    assert "{on,off}" in plan_section[0] and "(default: on)" in plan_section[0]  # the registered methods plan
     # every flag of the method is named somewhere on the screen (featured, or in a group's brace list)
     flags = [f.name for f in config_flags(discover_methods()["kc-splatfacto"].config)
              if not f.name.startswith(("--optimizers.", "--method-name", "--timestamp"))]

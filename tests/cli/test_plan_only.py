@@ -20,14 +20,15 @@ def test_plan_only_prints_the_table_and_trains_nothing(tmp_path, capsys):
     assert out.startswith("scene plan for kc-splatfacto on demo (12 training views, 64x48):")
     for name in ("schedule", "downscales", "cbc", "background"):
         assert f"  {name} " in out
-    assert "the plan is off for this run" in out  # the registered methods train with the fixed settings for now
+    assert "plan is off" not in out  # the registered methods train with their plan
     assert not (tmp_path / "outputs").exists()
 
 
-def test_plan_only_with_the_plan_on_says_nothing_of_it_being_off_and_shows_a_set_value_as_yours(tmp_path, capsys):
-    code, out = _plan_only(tmp_path, capsys, "--pipeline.model.plan", "on", "--pipeline.model.num-downscales", "1")
-    assert code == 0 and "plan is off" not in out
-    assert "1 (set by you)" in out
+def test_plan_only_shows_a_set_value_as_yours_and_says_when_the_plan_is_off(tmp_path, capsys):
+    code, out = _plan_only(tmp_path, capsys, "--pipeline.model.num-downscales", "1")
+    assert code == 0 and "1 (set by you)" in out and "plan is off" not in out
+    code, out = _plan_only(tmp_path, capsys, "--pipeline.model.plan", "off")
+    assert code == 0 and "the plan is off for this run" in out and "--pipeline.model.plan on applies them" in out
 
 
 @pytest.mark.parametrize("scene, parser", [("castle-P30", "spars3r"), ("fern-12", "auto"), ("beer-12", "auto"),

@@ -61,11 +61,21 @@ def castle_run(tmp_path_factory) -> Path:
     return out / "castle-P30" / "kc-splatfacto" / "run"
 
 
-def test_ns_train_kc_splatfacto_on_a_spars3r_split_trains_with_the_three_terms(castle_run):
+def planned_terms(run: Path) -> set[str]:
+    """The frequency terms the run's plan.json leaves on (a CBC weight planned to 0 drops cbc_loss)."""
+    plan = json.loads((run / "plan.json").read_text())
+    cbc = next(d["chosen"] for d in plan["decisions"] if d["name"] == "cbc")
+    return {"wavelet_loss", "kc_loss"} | ({"cbc_loss"} if cbc > 0 else set())
+
+
+def test_ns_train_kc_splatfacto_on_a_spars3r_split_trains_with_the_terms_its_plan_keeps(castle_run):
     assert (castle_run / "config.yml").is_file() and (castle_run / "dataparser_transforms.json").is_file()
     assert sorted(p.name for p in (castle_run / "nerfstudio_models").iterdir())[-1] == f"step-{STEPS - 1:09d}.ckpt"
     terms = loss_terms(castle_run)
-    for term in TERMS:
+    kept = planned_terms(castle_run)
+    assert "cbc_loss" not in kept  # castle-P30's CBC is 3e-4 of its wavelet L1 (docs/plan.md)
+    assert set(TERMS) & set(terms) == kept
+    for term in kept:
         assert len(terms[term]) >= STEPS // 5 - 1 and all(v >= 0 for v in terms[term]) and max(terms[term]) > 0, term
     checkpoint = torch.load(castle_run / "nerfstudio_models" / f"step-{STEPS - 1:09d}.ckpt", map_location="cpu")
     assert checkpoint["step"] == STEPS - 1  # torch.load's weights-only default reads it (no numpy scalars inside)
@@ -102,8 +112,11 @@ def test_load_dir_continues_the_run(castle_run, tmp_path):
     ns("ns-train", "kc-splatfacto", *CPU_RUN, "--output-dir", str(tmp_path), "--max-num-iterations", "10",
        "--load-dir", str(castle_run / "nerfstudio_models"),
        "--data", str(shared_scene("castle-P30")), "spars3r", "--downscale-factor", "4", cwd=tmp_path)
-    continued = tmp_path / "castle-P30" / "kc-splatfacto" / "run" / "nerfstudio_models"
-    assert f"step-{STEPS + 9:09d}.ckpt" in {p.name for p in continued.iterdir()}
+    continued = tmp_path / "castle-P30" / "kc-splatfacto" / "run"
+    assert f"step-{STEPS + 9:09d}.ckpt" in {p.name for p in (continued / "nerfstudio_models").iterdir()}
+    # the continued run trains the plan the first one made (read again, not measured anew), and records it
+    assert (continued / "plan.json").read_text() == (castle_run / "plan.json").read_text()
+    assert set(TERMS) & set(loss_terms(continued)) == planned_terms(castle_run)
 
 
 def _free_port() -> int:
@@ -145,10 +158,12 @@ def test_fern_through_nerfstudios_colmap_parser(method, tmp_path):
     scene.mkdir()
     for name in ("images", "sparse"):
         (scene / name).symlink_to(fern / name)
+    # with the scene plan off (the fixed settings: the paper's three terms, nerfstudio's own trainer's steps)
     ns("ns-train", method, *CPU_RUN, "--output-dir", str(tmp_path), "--max-num-iterations", "20",
+       "--pipeline.model.plan", "off",
        "--data", str(scene), "colmap", "--colmap-path", "sparse/0", "--downscale-factor", "1", cwd=tmp_path)
     run = tmp_path / "fern-plain" / method / "run"
-    assert (run / "nerfstudio_models" / "step-000000019.ckpt").is_file()
+    assert (run / "nerfstudio_models" / "step-000000019.ckpt").is_file() and not (run / "plan.json").exists()
     terms = loss_terms(run)
     if method == "kc-splatfacto":
         assert all(max(terms[t]) > 0 for t in TERMS)
