@@ -39,14 +39,14 @@ def test_a_plan_arm_trains_its_plan_and_ends_at_its_planned_step(study):
     assert _evals(planned)[-1][0] == end  # no step past the plan's end was trained or evaluated
     config = load_config(planned / "config.yml")
     changed = {f: d["chosen"] for f, d in choices.items() if d["chosen"] != d["asked"]}
-    assert "pipeline.model.frequency.cbc_weight" in changed  # the demo's CBC is far below 1 % of the wavelet L1
+    assert "pipeline.model.num_downscales" in changed  # the demo's 40x30 first stage holds 2 of 3 db3 levels
     for dotted, chosen in changed.items():  # config.yml records what the run trained
         value = config
         for part in dotted.split("."):
             value = getattr(value, part)
         assert value == chosen, dotted
     fixed = load_config(runs / "kc-splatfacto" / "seed0+fixed" / "config.yml")
-    assert fixed.pipeline.model.frequency.cbc_weight == choices["pipeline.model.frequency.cbc_weight"]["asked"] > 0
+    assert fixed.pipeline.model.num_downscales == choices["pipeline.model.num_downscales"]["asked"] == 2
     assert fixed.pipeline.model.plan == "off" and not (runs / "kc-splatfacto" / "seed0+fixed" / "plan.json").exists()
     # the report's final row of the plan arm is its planned end; the fixed arms' are the budget
     finals = {(r["method"], r["step"]) for r in report.final_rows(report.read_rows_csv(study / "evals.csv"))}
