@@ -8,16 +8,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from kc_splatfacto.atomic import atomic_write_text
-from kc_splatfacto.plan.scene_plan import PLAN_FILE
-
-
-def _choice(decision: dict[str, Any]) -> str:
-    source, asked, chosen = decision.get("source"), decision.get("asked"), decision.get("chosen")
-    if source == "plan":
-        return f"**{chosen}** (asked {asked})" if chosen != asked else f"{chosen} (as asked)"
-    if source == "reported":
-        return f"{chosen} (reported)"
-    return f"{chosen} ({'set by the study' if source == 'yours' else 'plan_skip'})"
+from kc_splatfacto.plan.scene_plan import PLAN_FILE, Decision
 
 
 def plan_rows(runs: Sequence[dict]) -> list[dict[str, Any]]:
@@ -56,8 +47,9 @@ def write_plan_table(runs: Sequence[dict], out_dir: Path) -> dict[str, Path]:
         lines += [f"## {row['scene']}, {row['method']} ({plan.get('views')} training views, {plan.get('size')}; "
                   f"seeds {seeds}: {agree})", "",
                   "| decision | measured | rule | choice |", "|---|---|---|---|"]
-        lines += [f"| {d.get('name')} | {d.get('measured')} | {d.get('rule')} | {_choice(d)} |"
-                  for d in plan.get("decisions", [])]
+        decisions = [Decision(**d) for d in plan.get("decisions", [])]
+        lines += [f"| {d.name} | {d.measured} | {d.rule} | {d.choice('**', yours='set by the study')} |"
+                  for d in decisions]
         lines.append("")
     path = Path(out_dir) / "plans.md"
     atomic_write_text(path, "\n".join(lines))

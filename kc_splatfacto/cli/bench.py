@@ -317,9 +317,11 @@ class Study:
         views = []
         for spec in self.specs:
             result = self.results.get(spec.index)
+            if result is None:
+                continue
             end = final_step(spec.run_dir, spec.max_steps)
             final = next((r for r in reversed(result["records"]) if r.get("kind") == "eval"
-                          and r.get("step") == end), None) if result else None
+                          and r.get("step") == end), None)
             if final is None:
                 continue
             for view in final.get("per_image", []):
@@ -540,7 +542,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Train methods x scenes x seeds under one step budget; report test quality against training time.",
     )
     parser.add_argument("--data", nargs="+", required=True, help="scene folder(s), or 'demo'")
-    parser.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS), help="registered method names; METHOD+plan or METHOD+fixed: that method with the scene plan on or off (docs/plan.md)")
+    parser.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS),
+                        help="registered method names; METHOD+plan or METHOD+fixed: that method with the scene plan "
+                             "on or off (docs/plan.md)")
     parser.add_argument("--baseline", default=None,
                         help=f"method the deltas are taken against (default: {DEFAULT_BASELINE} when among --methods)")
     parser.add_argument("--also-against", nargs="+", default=[], metavar="METHOD",

@@ -34,8 +34,8 @@ DATAPARSER_FIELD = "pipeline.datamanager.dataparser"
 SHORT_HELP_GROUPS = (
     ("run", ("--data", "--max-num-iterations", "--output-dir", "--load-dir", "--steps-per-eval-all-images",
              "--machine.device", "--machine.seed")),
-    ("model", ("--pipeline.model.steps-scale", "--pipeline.model.sh-degree", "--pipeline.model.max-num-gaussians", "--pipeline.model.frequency.wavelet-weight",
-               "--pipeline.model.frequency.kc-weight", "--pipeline.model.frequency.cbc-weight",
+    ("model", ("--pipeline.model.steps-scale", "--pipeline.model.sh-degree", "--pipeline.model.max-num-gaussians",
+               "--pipeline.model.frequency.wavelet-weight", "--pipeline.model.frequency.kc-weight", "--pipeline.model.frequency.cbc-weight",
                "--pipeline.model.frequency.wave", "--pipeline.model.frequency.wavelet-levels",
                "--pipeline.model.rasterizer")),
     ("scene plan", ("--pipeline.model.plan", "--pipeline.model.plan-skip", "--plan-only")),

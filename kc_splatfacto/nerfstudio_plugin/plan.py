@@ -20,15 +20,13 @@ from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.engine.trainer import TrainerConfig
 
 from kc_splatfacto.data.outputs import Cameras
-from kc_splatfacto.engine.scene_planning import recorded_plan_file
+from kc_splatfacto.engine.scene_planning import apply_recorded_plan, plan_is_on, recorded_plan_file
 from kc_splatfacto.nerfstudio_plugin.cpu import viewmats_from_camera_to_worlds
 from kc_splatfacto.plan.scene_plan import (
     PLAN_FILE,
     ScenePlan,
     apply_choices,
     make_scene_plan,
-    read_choices,
-    reapply_choices,
     user_set_fields,
 )
 
@@ -62,11 +60,10 @@ def plan_nerfstudio_run(config: TrainerConfig, method_default: Any | None) -> Sc
     """Make (or, for ``--load-dir``, read again) the run's plan and apply it to ``config`` in place: the plan, the
     choices a continued run applied again, or None with the plan off. ``method_default``: the registered config of
     the run's method, what the user's settings are compared with (None: every field the plan's)."""
-    if getattr(config.pipeline.model, "plan", "off") != "on":
+    if not plan_is_on(config):
         return None
-    if config.load_dir is not None:
-        recorded = recorded_plan_file(Path(config.load_dir))
-        return reapply_choices(config, read_choices(recorded)) if recorded.is_file() else {}
+    if config.load_dir is not None:  # kc-train's resume: the recorded choices where this command asks what it asked
+        return apply_recorded_plan(config)
     images, cameras, points, scene = training_split(config)
     plan = make_scene_plan(config, images, cameras, points, scene, user_set_fields(config, method_default))
     apply_choices(config, plan.choices())

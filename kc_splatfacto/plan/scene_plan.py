@@ -82,6 +82,14 @@ class Decision:
     def changes(self) -> bool:
         return self.source == "plan" and self.chosen != self.asked
 
+    def choice(self, emphasis: str = "", yours: str = "set by you") -> str:
+        """The choice as the table says it: the value, and why (a changed value between ``emphasis`` marks)."""
+        if self.source == "reported":
+            return f"{self.chosen} (reported)"
+        if self.source == "plan":
+            return f"{emphasis}{self.chosen}{emphasis} (asked {self.asked})" if self.changes else f"{self.chosen} (as asked)"
+        return f"{self.chosen} ({yours if self.source == 'yours' else 'plan_skip'})"
+
 
 @dataclass
 class ScenePlan:
@@ -98,13 +106,7 @@ class ScenePlan:
         head = f"scene plan for {self.method} on {self.scene} ({self.views} training views, {self.size}):"
         rows = [("decision", "measured", "rule", "choice")]
         for d in self.decisions:
-            if d.source == "reported":
-                choice = f"{d.chosen} (reported)"
-            elif d.source == "plan":
-                choice = f"{d.chosen}" + (f" (asked {d.asked})" if d.changes else " (as asked)")
-            else:
-                choice = f"{d.chosen} ({'set by you' if d.source == 'yours' else 'plan_skip'})"
-            rows.append((d.name, d.measured, d.rule, choice))
+            rows.append((d.name, d.measured, d.rule, d.choice()))
         widths = [max(len(r[i]) for r in rows) for i in range(3)]
         lines = [head] + ["  " + "  ".join(r[i].ljust(widths[i]) for i in range(3)) + "  " + r[3] for r in rows]
         lines.append(f"  (the fields: {PLAN_FILE}; a flag you set wins; --pipeline.model.plan-skip NAME keeps the "
@@ -229,7 +231,8 @@ def make_scene_plan(config: Any, images: Sequence[torch.Tensor], cameras: Camera
     nominal = VISITS_PER_VIEW * coverage.views / max(coverage.coverage, 1e-6)
     floor = planned_downscales * model.resolution_schedule + FULL_RESOLUTION_STEPS
     nominal_end = max(math.ceil(nominal / END_QUANTUM) * END_QUANTUM, floor)
-    end = min(scale_steps(nominal_end, getattr(model, "steps_scale", 1.0)), config.max_num_iterations)  # (ns-train's has none)
+    steps_scale = getattr(model, "steps_scale", 1.0)  # ns-train's model config has none
+    end = min(scale_steps(nominal_end, steps_scale), config.max_num_iterations)
     decide("schedule", "max_num_iterations",
            f"{coverage.views} views, coverage {coverage.coverage:.2f} ({coverage.points} points)",
            f"{VISITS_PER_VIEW} x views / coverage, within warm-up..asked", end)

@@ -64,8 +64,9 @@ class RunSpec:
 def check_same_settings(run_dir: Path, config: Any) -> None:
     """A run folder the study would reuse or continue must have been trained with the settings ``config`` asks for:
     model, seed, optimizers, scene and dataparser with its settings (e.g. the downscale factor), as its
-    ``config.yml`` records them (with the scene plan's choices, where the run has a ``plan.json``). Anything else is a :class:`StudySettingsError` naming the folder and what differs,
-    never a finished run of another setting silently reported as this one."""
+    ``config.yml`` records them (with the scene plan's choices, where the run has a ``plan.json``). Anything else is a
+    :class:`StudySettingsError` naming the folder and what differs, never a finished run of another setting silently
+    reported as this one."""
     saved_path = Path(run_dir) / "config.yml"
     if not saved_path.is_file():
         return
