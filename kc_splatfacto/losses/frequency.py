@@ -84,6 +84,10 @@ class FrequencyLossConfig:
     """orthogonal Daubechies wavelet of the DWT"""
     wavelet_levels: int = setting(3, integer(0, 16))
     """DWT levels (fewer where the image is too small for them, with a warning)"""
+    skip_finest_levels: int = setting(0, integer(0, 15))
+    """finest DWT levels of the full-size training image left out of every term (the scene plan's 'levels': their
+    detail is at the images' noise floor): their bands are not compared; at a warm-up stage of 1/2^d resolution d
+    fewer are left out (the downscale has averaged that noise away; :attr:`FrequencyLoss.downscale`). 0: every level"""
     wavelet_mode: WaveletMode = "symmetric"
     """DWT boundary extension (pywt's names; docs/losses.md measures why symmetric)"""
     wavelet_weighting: Weighting = "paper"
@@ -128,6 +132,9 @@ class FrequencyLossConfig:
         if self.active and self.wavelet_levels < 1:
             weights = ", ".join(f"{term.weight_field} {weight!r}" for term, weight in self.active_terms())
             return "wavelet_levels", f"an integer >= 1 while a wavelet, KC or CBC weight is non-zero (here {weights})"
+        if self.active and self.skip_finest_levels >= self.wavelet_levels:
+            return "skip_finest_levels", (f"below wavelet_levels ({self.wavelet_levels}) while a term is on: at least "
+                                          "the coarsest level is compared")
         return None
 
     def setup(self) -> FrequencyLoss:
@@ -266,6 +273,8 @@ class WaveletBands:
     wavelet_mode: str
     cbc_correlation: bool
     image_shape: tuple[int, ...]
+    skipped_levels: int = 0
+    """finest levels left out: ``coeffs`` holds levels skipped_levels + 1 .. J (``skip_finest_levels`` at this size)"""
     image: Tensor | None = dataclasses.field(default=None, repr=False, compare=False)
     """the (detached) image of a target prepared off the compiled CPU kernels: the fused path computes its side of
     the terms with the same operations as the render's, so equal images give exactly zero"""
@@ -299,12 +308,17 @@ def wavelet_bands(
     covariance: bool = True,
     warn_dropped_levels: bool = True,
     check_finite: bool = True,
+    skip_finest_levels: int = 0,
 ) -> WaveletBands:
     """The DWT of image [B, C, H, W] and, when asked, its band kurtosis and L_cov (differentiable; raises
     ValueError on NaN/Inf unless ``check_finite`` is False); the statistics not asked for stay None. Levels the image
-    is too small for are left out (with :func:`dwt2`'s warning unless ``warn_dropped_levels`` is False)."""
+    is too small for are left out (with :func:`dwt2`'s warning unless ``warn_dropped_levels`` is False), and so are
+    the ``skip_finest_levels`` finest: the DWT computes them (a coarser level is the DWT of a finer one's
+    approximation) but no statistic or term reads their bands."""
     _check_image(image, "image", finite=check_finite)
     coeffs = dwt2(image, wave=wave, levels=wavelet_levels, mode=wavelet_mode, warn=warn_dropped_levels)
+    if skip_finest_levels:
+        coeffs = coeffs.without_finest(skip_finest_levels)
     k = spread = l_cov = None
     if kurtosis or covariance:  # (no level: empty kurtosis [B, C, 0], zero spread and L_cov)
         moments, power = level_moments(coeffs, kurtosis, covariance)
@@ -314,7 +328,7 @@ def wavelet_bands(
         if covariance:
             l_cov = _off_diagonal_energy(_covariances_from_moments(moments, power, cbc_correlation))
     return WaveletBands(coeffs, k, spread, l_cov, wave, wavelet_levels, wavelet_mode, cbc_correlation,
-                        tuple(image.shape))
+                        tuple(image.shape), skip_finest_levels)
 
 
 def prepare_target(
@@ -324,13 +338,14 @@ def prepare_target(
     wavelet_mode: str = _PAPER.wavelet_mode,
     cbc_correlation: bool = _PAPER.cbc_correlation,
     warn_dropped_levels: bool = True,
+    skip_finest_levels: int = 0,
 ) -> WaveletBands:
     """The ground truth's WaveletBands with every statistic, detached: compute once per image, reuse every step
     (raises ValueError on NaN/Inf naming 'gt')."""
     _check_image(gt, "gt")
     with torch.no_grad():
         bands = wavelet_bands(gt.detach(), wave, wavelet_levels, wavelet_mode, cbc_correlation,
-                              warn_dropped_levels=warn_dropped_levels)
+                              warn_dropped_levels=warn_dropped_levels, skip_finest_levels=skip_finest_levels)
     if not backend.compiled(gt):
         bands.image = gt.detach()
     return bands
@@ -342,7 +357,8 @@ def _check_pair(pred: WaveletBands, gt: WaveletBands, with_correlation: bool = F
         if not isinstance(x, WaveletBands):
             raise TypeError(f"'{name}' must be WaveletBands (wavelet_bands(image) / prepare_target(gt)), "
                             f"got {type(x).__name__}")
-    settings = ("wave", "wavelet_levels", "wavelet_mode") + (("cbc_correlation",) if with_correlation else ())
+    settings = ("wave", "wavelet_levels", "wavelet_mode", "skipped_levels") + (
+        ("cbc_correlation",) if with_correlation else ())
     if any(getattr(pred, k) != getattr(gt, k) for k in settings):
         describe = lambda x: ", ".join(f"{k}={getattr(x, k)}" for k in settings)  # noqa: E731
         raise ValueError(f"pred and gt bands were computed differently (pred: {describe(pred)}; gt: {describe(gt)}): "
@@ -380,7 +396,8 @@ def wavelet_l1(pred: WaveletBands, gt: WaveletBands, wavelet_weighting: str = "p
     if pred.coeffs.levels == 0:
         return _no_band_loss(pred.coeffs)
     # sum over the 3 orientations of each one's mean = 3 * mean over the level's [B, C, 3, h, w]
-    weights = [3.0 * weight for weight in level_weights(pred.coeffs.levels, wavelet_weighting)]
+    skipped = pred.skipped_levels  # the weights stay those of the levels' own indices j
+    weights = [3.0 * weight for weight in level_weights(skipped + pred.coeffs.levels, wavelet_weighting)[skipped:]]
     return weighted_band_l1(weights, pred.coeffs.details, gt.coeffs.details)
 
 
@@ -445,7 +462,8 @@ def lowpass_l1(pred: WaveletBands, gt: WaveletBands, lowpass_weighting: str = "h
     gt = _check_pair(pred, gt)
     if pred.coeffs.levels == 0:
         return _no_band_loss(pred.coeffs)
-    weights = lowpass_level_weights(pred.coeffs.levels, lowpass_weighting)
+    skipped = pred.skipped_levels
+    weights = lowpass_level_weights(skipped + pred.coeffs.levels, lowpass_weighting)[skipped:]
     terms = [weight * (band - target.detach()).abs().mean()
              for weight, band, target in zip(weights, pred.coeffs.approximations, gt.coeffs.approximations)]
     return torch.stack(terms).sum()
@@ -526,6 +544,9 @@ class FrequencyLoss(nn.Module):
         #: off the compiled CPU kernels (a GPU), the supervised terms in one autograd Function of few operations
         #: (``_fused_frequency``); False: level by level, as on the CPU (the tests compare the two)
         self.fused = True
+        #: the training resolution's divisor 2^d (a model's resolution schedule sets it each step): the
+        #: ``skip_finest_levels`` of the full-size image are d fewer here (:attr:`skipped_levels`)
+        self.downscale = 1
         self._l1_weights: dict[Any, Tensor] = {}
         self._targets: dict[Hashable, WaveletBands] = {}  # the ground truths' targets by key (compare, target)
 
@@ -533,21 +554,29 @@ class FrequencyLoss(nn.Module):
     def active(self) -> bool:
         return self.config.active
 
+    @property
+    def skipped_levels(self) -> int:
+        """The finest levels left out at the current :attr:`downscale`: ``skip_finest_levels`` - d at 1/2^d (a
+        halving is one level: the full-size image's level j is about level j - d of the downscaled one)."""
+        return max(0, self.config.skip_finest_levels - (int(self.downscale).bit_length() - 1))
+
     def bands(self, image: Tensor, kurtosis: bool = True, covariance: bool = True,
-              check_finite: bool = True) -> WaveletBands:
-        """:func:`wavelet_bands` of image [B, C, H, W] with this loss's settings."""
+              check_finite: bool = True, every_level: bool = False) -> WaveletBands:
+        """:func:`wavelet_bands` of image [B, C, H, W] with this loss's settings (``every_level``: none of the
+        finest left out, as the logged band kurtosis wants)."""
         self._warn_dropped_levels_once(image)
         c = self.config
         return wavelet_bands(image, c.wave, c.wavelet_levels, c.wavelet_mode, c.cbc_correlation,
                              kurtosis=kurtosis, covariance=covariance, warn_dropped_levels=False,
-                             check_finite=check_finite)
+                             check_finite=check_finite, skip_finest_levels=0 if every_level else self.skipped_levels)
 
     def prepare_target(self, gt: Tensor) -> WaveletBands:
-        """Detached bands and statistics of gt [B, C, H, W] with this loss's settings (cache it per image)."""
+        """Detached bands and statistics of gt [B, C, H, W] with this loss's settings (cache it per image and
+        resolution)."""
         self._warn_dropped_levels_once(gt)
         c = self.config
         return prepare_target(gt, c.wave, c.wavelet_levels, c.wavelet_mode, c.cbc_correlation,
-                              warn_dropped_levels=False)
+                              warn_dropped_levels=False, skip_finest_levels=self.skipped_levels)
 
     def _warn_dropped_levels_once(self, image: Tensor) -> None:
         """One warning per image size (W x H) too small for the requested levels, none with
@@ -638,8 +667,10 @@ class FrequencyLoss(nn.Module):
         return None if key is None else self._targets.get(key)
 
     def _takes_fused_path(self, pred: Tensor, active: list[tuple[FrequencyTerm, float]]) -> bool:
-        """Off the compiled CPU kernels, the fused Function serves every active term it computes (TERMS' ``fused``)."""
-        return (self.fused and not backend.compiled(pred)
+        """Off the compiled CPU kernels, the fused Function serves every active term it computes (TERMS' ``fused``)
+        when every level is compared (it has no notion of a left-out finest level: the level-by-level path serves
+        then)."""
+        return (self.fused and not backend.compiled(pred) and self.skipped_levels == 0
                 and all(term.fused is not None and term.fused(self.config) for term, _ in active))
 
     def _fused_forward(self, pred: Tensor, target: WaveletBands) -> dict[str, Tensor] | None:
@@ -677,7 +708,7 @@ class FrequencyLoss(nn.Module):
         if plan is None:
             return None
         settings = ("wave", "wavelet_levels", "wavelet_mode") + (("cbc_correlation",) if c.cbc_weight > 0 else ())
-        if any(getattr(target, name) != getattr(c, name) for name in settings):
+        if target.skipped_levels or any(getattr(target, name) != getattr(c, name) for name in settings):
             raise ValueError("the target's bands were computed with other settings than this loss's: prepare the "
                              "target with the loss's own settings (FrequencyLoss.prepare_target)")
         if target.device != image.device or target.dtype != image.dtype:

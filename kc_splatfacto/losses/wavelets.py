@@ -54,6 +54,10 @@ class WaveletCoeffs:
     def levels(self) -> int:
         return len(self.details)
 
+    def without_finest(self, count: int) -> WaveletCoeffs:
+        """These coefficients less the ``count`` finest levels' bands (``approx``, the coarsest, stays)."""
+        return WaveletCoeffs(self.approx, self.details[count:], self.approximations[count:])
+
     def detach(self) -> WaveletCoeffs:
         return WaveletCoeffs(self.approx.detach(), [d.detach() for d in self.details],
                              [a.detach() for a in self.approximations])

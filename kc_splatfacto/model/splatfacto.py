@@ -31,7 +31,7 @@ from kc_splatfacto.render.constants import FAR_PLANE, NEAR_PLANE, SH_MAX_DEGREE
 from kc_splatfacto.render.rasterization import Rasterizer, RenderMode
 from kc_splatfacto.settings import integer, real, setting
 
-PlanDecision = Literal["schedule", "downscales", "background"]
+PlanDecision = Literal["schedule", "downscales", "background", "levels"]
 PLAN_DECISIONS: tuple[str, ...] = PlanDecision.__args__  # type: ignore[attr-defined]
 """the scene plan's decisions (kc_splatfacto/plan/scene_plan.py), each one config field"""
 EVAL_BACKGROUND = (0.1490, 0.1647, 0.2157)
@@ -144,11 +144,11 @@ class SplatfactoModelConfig:
     steps_scale: float = setting(1.0, real(0.0, low_open=True))
     """multiplies every step-based schedule (see the module docstring)"""
     plan: Literal["on", "off"] = "off"
-    """'on': the scene plan sets the step count (the asked one a budget), the warm-up and the background from
-    measurements of the training views, prints its table and writes plan.json
+    """'on': the scene plan sets the step count (the asked one a budget), the warm-up, the background and the
+    finest DWT levels left out from measurements of the training views, prints its table and writes plan.json
     (kc_splatfacto/plan/scene_plan.py); 'off': the fixed settings (the paper's, Splatfacto's)"""
     plan_skip: tuple[PlanDecision, ...] = ()
-    """decisions of the scene plan that keep this config's value (schedule, downscales, background)"""
+    """decisions of the scene plan that keep this config's value (schedule, downscales, background, levels)"""
     frequency: FrequencyLossConfig = setting(default_factory=FrequencyLossConfig.off)
     """KC-3DGS's wavelet-domain losses (wavelet L1, KC, CBC) and their DWT; every weight 0 here (Splatfacto): the
     kc-splatfacto methods set the paper's (FrequencyLossConfig's defaults)"""
@@ -610,6 +610,7 @@ class SplatfactoModel(torch.nn.Module):
         pred_img, gt_img, _ = self._masked_pair(outputs, batch)
         if self.frequency_loss is not None:
             self._warn_dropped_levels(*pred_img.shape[:2], *batch["image"].shape[:2])
+            self.frequency_loss.downscale = self.get_downscale_factor()  # the finest levels it leaves out follow it
         loss_dict = self.image_loss(pred_img, gt_img, key=self.wavelet_target_key(batch))
         if self.config.use_scale_regularization:
             if self.step % SCALE_REG_EVERY == 0:
@@ -656,6 +657,8 @@ class SplatfactoModel(torch.nn.Module):
         if with_kurtosis:
             frequency_loss = self.frequency_loss
             cached = None if frequency_loss is None else frequency_loss.cached_target(self.wavelet_target_key(batch))
+            if cached is not None and cached.skipped_levels:  # the log holds every level's bands
+                cached = None
             metrics["kurtosis_render"] = self.band_kurtosis(pred_img)
             metrics["kurtosis_gt"] = self.band_kurtosis(cached or gt_img)
         return metrics
@@ -684,5 +687,5 @@ class SplatfactoModel(torch.nn.Module):
                 self._kurtosis_probe = self.frequency_loss or self.config.frequency.setup()
                 self._kurtosis_probe.warn_dropped_levels = False
             with torch.no_grad():
-                image = self._kurtosis_probe.bands(_bchw(image.detach().float()), covariance=False)
+                image = self._kurtosis_probe.bands(_bchw(image.detach().float()), covariance=False, every_level=True)
         return mean_band_kurtosis(image)

@@ -58,11 +58,11 @@ class KCSplatfactoModelConfig(SplatfactoModelConfig):
     mcmc_scale_reg: float = 0.01
     """mcmc: weight of the mean scale in the loss"""
     plan: Literal["on", "off"] = "off"
-    """'on': the scene plan sets the step count (the asked one a budget), the warm-up and the background from
-    measurements of the training views (kc-train's rules; the plugin's trainer makes it, .plan);
-    'off': the fixed settings"""
+    """'on': the scene plan sets the step count (the asked one a budget), the warm-up, the background and the
+    finest DWT levels left out from measurements of the training views (kc-train's rules; the plugin's trainer
+    makes it, .plan); 'off': the fixed settings"""
     plan_skip: Tuple[PlanDecision, ...] = ()
-    """decisions of the scene plan that keep this config's value (schedule, downscales, background)"""
+    """decisions of the scene plan that keep this config's value (schedule, downscales, background, levels)"""
 
 
 def on_cuda(device: Any) -> bool:
@@ -226,6 +226,7 @@ class KCSplatfactoModel(SplatfactoModel):
             return loss_dict
         gt_img = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
         mask = self._downscale_if_required(batch["mask"]).to(self.device) if "mask" in batch else None
+        self.frequency_loss.downscale = self._get_downscale_factor()  # the finest levels it leaves out follow it
         loss_dict.update(self.frequency_loss.compare(outputs["rgb"], gt_img, mask=mask,
                                                      key=self.wavelet_target_key(batch)))
         return loss_dict

@@ -82,3 +82,22 @@ def test_a_resume_continues_with_the_plan_the_run_recorded(tmp_path, from_folder
     assert resumed.scene_plan is None  # not measured anew
     assert resumed.config.pipeline.model.num_downscales == 0
     assert _same(_gaussians(full), _gaussians(resumed))
+
+
+def test_a_run_leaves_out_the_planned_finest_levels_at_full_size_and_one_fewer_per_halving(tmp_path):
+    """skip_finest_levels 1 with one halving (steps_scale 0.01: 30 steps at 32x24, then 64x48): the ground truths'
+    targets cached at half size compare every level, those at full size leave level 1 out; the logged band kurtosis
+    keeps every level's bands."""
+    config = tiny_demo_config("kc-splatfacto", tmp_path / "skip", iterations=45, steps_scale=0.01,
+                              num_downscales=1)
+    config.pipeline.datamanager.dataparser.demo_cache_dir = tmp_path / "demo-cache"
+    config.pipeline.model.frequency.skip_finest_levels = 1
+    trainer = Trainer(config)
+    trainer.train()
+    targets = trainer.model.frequency_loss._targets
+    assert {downscale for _, downscale in targets} == {1, 2}
+    assert all(target.skipped_levels == (1 if downscale == 1 else 0) for (_, downscale), target in targets.items())
+    assert all(target.coeffs.levels == 2 for target in targets.values())  # 3 - 1 left out; 32x24 holds 2 of 3
+    logged = [json.loads(line) for line in (trainer.run_dir / "metrics.jsonl").read_text().splitlines()]
+    kurtosis = [row["kurtosis_gt"] for row in logged if "kurtosis_gt" in row and row["step"] > 30]
+    assert kurtosis and all(len(values) == 9 for values in kurtosis)  # 3 levels x (H, V, D) at 64x48

@@ -90,6 +90,37 @@ def test_the_cbc_is_measured_and_reported_never_left_out():
     assert not [d for d in _plan(_config("splatfacto"), cams, points).decisions if d.name == "cbc"]
 
 
+def _noisy(base_of_view, views: int, sigma: float = 3.0):
+    rng = np.random.default_rng(0)
+    images = []
+    for i in range(views):
+        base = base_of_view(i)
+        images.append(torch.tensor(np.round(np.clip(base + rng.normal(0, sigma / 255, base.shape), 0, 1) * 255),
+                                   dtype=torch.uint8))
+    return images
+
+
+def test_a_smooth_scene_leaves_its_noise_levels_out_a_textured_one_keeps_every_level():
+    """The same sensor noise (3/255) on a smooth shading and on a texture of 8-pixel tiles: the shading's two finest
+    db3 levels hold the noise alone (detail / noise about 1.0 and 1.1) and are left out, its coarsest (2.4) kept;
+    every level of the texture is 5-11 times the noise. Splatfacto and the low-pass method have no such decision."""
+    cams, points = synthetic.forward_facing(6)
+    rows, cols = np.mgrid[0:synthetic.HEIGHT, 0:synthetic.WIDTH]
+    smooth = _noisy(lambda i: np.stack([0.5 + 0.2 * np.sin(2 * np.pi * (0.7 * cols / synthetic.WIDTH
+                                                                          + 0.4 * rows / synthetic.HEIGHT) + i + k)
+                                        for k in range(3)], -1), 6)
+    textured = _noisy(synthetic.texture, 6)
+    field = "pipeline.model.frequency.skip_finest_levels"
+    planned = _plan(_config(), cams, points, smooth)
+    assert (_decision(planned, "levels").field, _decision(planned, "levels").chosen) == (field, 2)
+    assert planned.choices()[field] == 2
+    assert _decision(_plan(_config(), cams, points, textured), "levels").chosen == 0
+    assert _decision(_plan(_config(**{"pipeline.model.frequency.wavelet_levels": 2}), cams, points, smooth),
+                     "levels").chosen == 1  # the coarsest asked level stays
+    for method in ("splatfacto", "splatfacto-lowpass"):
+        assert not [d for d in _plan(_config(method), cams, points, smooth).decisions if d.name == "levels"]
+
+
 def test_a_white_backdrop_gets_a_white_background_a_textured_scene_the_asked_random():
     cams, points = synthetic.forward_facing(4)
     white = np.ones((synthetic.HEIGHT, synthetic.WIDTH, 3))
