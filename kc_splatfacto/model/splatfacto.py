@@ -31,7 +31,7 @@ from kc_splatfacto.render.constants import FAR_PLANE, NEAR_PLANE, SH_MAX_DEGREE
 from kc_splatfacto.render.rasterization import Rasterizer, RenderMode
 from kc_splatfacto.settings import integer, real, setting
 
-PlanDecision = Literal["schedule", "downscales", "background", "levels"]
+PlanDecision = Literal["schedule", "downscales", "background", "levels", "sh"]
 PLAN_DECISIONS: tuple[str, ...] = PlanDecision.__args__  # type: ignore[attr-defined]
 """the scene plan's decisions (kc_splatfacto/plan/scene_plan.py), each one config field"""
 EVAL_BACKGROUND = (0.1490, 0.1647, 0.2157)
@@ -144,11 +144,12 @@ class SplatfactoModelConfig:
     steps_scale: float = setting(1.0, real(0.0, low_open=True))
     """multiplies every step-based schedule (see the module docstring)"""
     plan: Literal["on", "off"] = "off"
-    """'on': the scene plan sets the step count (the asked one a budget), the warm-up, the background and the
-    finest DWT levels left out from measurements of the training views, prints its table and writes plan.json
-    (kc_splatfacto/plan/scene_plan.py); 'off': the fixed settings (the paper's, Splatfacto's)"""
+    """'on': the scene plan sets the step count (the asked one a budget), the warm-up, the background, the
+    finest DWT levels left out and the SH degree from measurements of the training views, prints its table and
+    writes plan.json (kc_splatfacto/plan/scene_plan.py); 'off': the fixed settings (the paper's, Splatfacto's)"""
     plan_skip: tuple[PlanDecision, ...] = ()
-    """decisions of the scene plan that keep this config's value (schedule, downscales, background, levels)"""
+    """decisions of the scene plan that keep this config's value (schedule, downscales, background,
+    levels, sh)"""
     frequency: FrequencyLossConfig = setting(default_factory=FrequencyLossConfig.off)
     """KC-3DGS's wavelet-domain losses (wavelet L1, KC, CBC) and their DWT; every weight 0 here (Splatfacto): the
     kc-splatfacto methods set the paper's (FrequencyLossConfig's defaults)"""

@@ -58,11 +58,12 @@ class KCSplatfactoModelConfig(SplatfactoModelConfig):
     mcmc_scale_reg: float = 0.01
     """mcmc: weight of the mean scale in the loss"""
     plan: Literal["on", "off"] = "off"
-    """'on': the scene plan sets the step count (the asked one a budget), the warm-up, the background and the
-    finest DWT levels left out from measurements of the training views (kc-train's rules; the plugin's trainer
-    makes it, .plan); 'off': the fixed settings"""
+    """'on': the scene plan sets the step count (the asked one a budget), the warm-up, the background, the
+    finest DWT levels left out and the SH degree from measurements of the training views (kc-train's rules; the
+    plugin's trainer makes it, .plan); 'off': the fixed settings"""
     plan_skip: Tuple[PlanDecision, ...] = ()
-    """decisions of the scene plan that keep this config's value (schedule, downscales, background, levels)"""
+    """decisions of the scene plan that keep this config's value (schedule, downscales, background,
+    levels, sh)"""
 
 
 def on_cuda(device: Any) -> bool:

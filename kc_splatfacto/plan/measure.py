@@ -123,11 +123,15 @@ def _box(image: torch.Tensor, factor: int) -> torch.Tensor:
 class ColourSpread:
     """``spread``: the median over seed points of the per-point colour spread over the views that see it (median
     absolute deviation, mean over RGB, in 8-bit levels); ``points``: points with at least
-    :data:`MIN_VIEWS_FOR_SPREAD` views; ``views_per_point``: their median view count."""
+    :data:`MIN_VIEWS_FOR_SPREAD` views; ``views_per_point``: their median view count; ``noise``: the spread the
+    images' noise alone gives at the scale the colours are sampled (the median |HH| of a one-level Haar transform of
+    the sampled images, per channel: an orthonormal band keeps white noise's deviation s, and the median absolute
+    deviation of s-noise is 0.6745 s, the same number)."""
 
     spread: float
     points: int
     views_per_point: float
+    noise: float = float("nan")
 
 
 def colour_spread(images: Sequence[torch.Tensor], cameras: Cameras, points: torch.Tensor | None) -> ColourSpread:
@@ -139,10 +143,12 @@ def colour_spread(images: Sequence[torch.Tensor], cameras: Cameras, points: torc
     pts = _strided(points.float())
     u, v, seen = project(pts, cameras)
     colours = torch.full((len(cameras), len(pts), 3), float("nan"), dtype=torch.float32)
+    noise = []
     for i, image in enumerate(images):
         height, width = image.shape[:2]
         factor = max(1, min(height, width) // SPREAD_SIDE)
         small = _box(_as_float(image), factor)
+        noise.append(_haar_diagonal_mad(small))
         sh, sw = small.shape[:2]
         col = (u[i] / factor).floor().long().clamp(0, sw - 1)
         row = (v[i] / factor).floor().long().clamp(0, sh - 1)
@@ -150,13 +156,25 @@ def colour_spread(images: Sequence[torch.Tensor], cameras: Cameras, points: torc
         colours[i, mask] = small[row[mask], col[mask]]
     counts = (~torch.isnan(colours[..., 0])).sum(0)
     keep = counts >= MIN_VIEWS_FOR_SPREAD
+    floor = float(torch.tensor(noise).median()) * 255.0
     if not bool(keep.any()):
-        return ColourSpread(float("nan"), 0, 0.0)
+        return ColourSpread(float("nan"), 0, 0.0, floor)
     kept = colours[:, keep]  # [N, P, 3]
     centre = torch.nanmedian(kept, dim=0).values
     mad = torch.nanmedian((kept - centre).abs(), dim=0).values  # [P, 3]
     per_point = mad.mean(-1) * 255.0
-    return ColourSpread(float(per_point.median()), int(keep.sum()), float(counts[keep].float().median()))
+    return ColourSpread(float(per_point.median()), int(keep.sum()), float(counts[keep].float().median()), floor)
+
+
+def _haar_diagonal_mad(image: torch.Tensor) -> float:
+    """median |HH| of a one-level orthonormal Haar transform of image [H, W, 3] in [0, 1], the mean over channels:
+    0.6745 times the deviation of the image's white noise (Donoho's estimate; edges are a minority of the band)."""
+    height, width = (image.shape[0] // 2) * 2, (image.shape[1] // 2) * 2
+    if height == 0 or width == 0:
+        return float("nan")
+    x = image[:height, :width].double()
+    diagonal = (x[0::2, 0::2] - x[0::2, 1::2] - x[1::2, 0::2] + x[1::2, 1::2]) / 2.0
+    return float(diagonal.abs().flatten(0, 1).median(dim=0).values.mean())
 
 
 @dataclass(frozen=True)

@@ -30,9 +30,13 @@ The rules and the numbers behind them (docs/plan.md):
   of every detail term, the coarsest level always kept; at a warm-up stage of 1/2^d, d fewer (the downscale averaged
   that noise away). On the shared scenes the lowest ratio is 2.8 (flower-12's finest level at 252x189), so no level
   is left out there.
+- **sh** (``sh_degree``): degree 0 (no SH coefficients at all) when the colour spread at the seed points across the
+  views is within :data:`SH_NOISE_RATIO` of what the images' noise alone gives, else the asked degree. Only a scene
+  without measurable view dependence loses its SH: the measure does not tell where a lower degree pays on a sparse
+  real scene (spread over noise 2.4 on entry-P10, where degree 0 helped its LPIPS in sparse-sh-7k, and 1.7 on
+  flower-12, where a lower degree cost 0.41 dB), so no shared scene changes.
 - Reported, not decided (the measurement is in the table; the choice is the config's): **kc bands** (coefficients
-  per band at the first stage) and **sh degree** (the colour spread at the seed points across the views: 4.7 on entry-P10,
-  where SH degree 0 helped, and 5.0 on flower-12, where it hurt, so it cannot decide the degree).
+  per band at the first stage).
 """
 
 from __future__ import annotations
@@ -67,6 +71,10 @@ BACKDROP_SHARE = 0.9
 NOISE_FLOOR_SNR = 1.5
 """a level whose detail RMS is below this many times the noise floor supervises noise: RMS^2 = signal^2 + noise^2, so
 1.5 is a signal RMS of 1.1 noise deviations: the noise is nearly half the band's energy"""
+SH_NOISE_RATIO = 1.25
+"""no SH above degree 0 when the colour spread across the views is at most this many times the spread the images'
+noise alone gives: a colour that does not change with the view beyond the noise needs no view-dependent term (the
+shared scenes measure 1.7 (flower-12) to 4.7 (castle-P30), and beer-12's flat backdrop has no noise floor)"""
 PLAN_FILE = "plan.json"
 
 
@@ -267,9 +275,9 @@ def make_scene_plan(config: Any, images: Sequence[torch.Tensor], cameras: Camera
         plan.decisions.append(Decision(
             "kc bands", "", f"coefficients per band {counts}", "kurtosis s.e. ~ sqrt(24 / n)", "all kept", "all kept", "reported"))
     spread = measure.colour_spread(images, cameras, points)
-    plan.decisions.append(Decision(
-        "sh degree", "", f"colour spread across views {spread.spread:.1f} / 255",
-        "no rule yet", model.sh_degree, model.sh_degree, "reported"))
+    lambertian = not math.isnan(spread.spread) and spread.spread <= SH_NOISE_RATIO * spread.noise
+    decide("sh", MODEL + "sh_degree", f"colour spread across views {spread.spread:.1f} / 255, noise {spread.noise:.1f}",
+           f"0 within {SH_NOISE_RATIO:g}x the noise", 0 if lambertian else model.sh_degree)
     return plan
 
 

@@ -51,6 +51,7 @@ def test_a_planned_run_is_the_fixed_run_with_the_plans_values_and_says_so(tmp_pa
     by_hand = _config(tmp_path, "by-hand")
     by_hand.pipeline.model.num_downscales = 0
     by_hand.pipeline.model.background_color = choices["pipeline.model.background_color"]
+    by_hand.pipeline.model.sh_degree = choices["pipeline.model.sh_degree"]  # 0: the demo's shading is Lambertian
     fixed = Trainer(by_hand)
     fixed.train()
     assert _same(_gaussians(planned), _gaussians(fixed))

@@ -119,3 +119,16 @@ def test_the_cbc_share_is_the_two_terms_on_the_ground_truth_as_numpy_and_pywavel
     expected = config.cbc_weight * cov / (config.wavelet_weight * wavelet)
     assert measure.cross_band_share([image], config) == pytest.approx(expected, rel=1e-3)
     assert measure.cross_band_share([image], FrequencyLossConfig(cbc_weight=0.0)) == 0.0
+
+
+def test_the_noise_floor_of_the_colour_spread_is_the_mad_of_the_images_noise():
+    """White noise of deviation 4 (8-bit levels) on mid-grey: the one-level Haar HH band's median |x| is 0.6745 x 4
+    (the median absolute deviation of that noise), less a little for the rounding to 8 bits; a noise-free image
+    has none."""
+    cams, points = synthetic.forward_facing(4)
+    rng = np.random.default_rng(0)
+    noisy = [torch.tensor(np.clip(np.round(128 + rng.normal(0, 4, (synthetic.HEIGHT, synthetic.WIDTH, 3))), 0, 255),
+                          dtype=torch.uint8) for _ in range(4)]
+    assert measure.colour_spread(noisy, cams, points).noise == pytest.approx(0.6745 * 4, rel=0.1)
+    flat = [torch.full((synthetic.HEIGHT, synthetic.WIDTH, 3), 90, dtype=torch.uint8)] * 4
+    assert measure.colour_spread(flat, cams, points).noise == 0.0

@@ -121,6 +121,29 @@ def test_a_smooth_scene_leaves_its_noise_levels_out_a_textured_one_keeps_every_l
         assert not [d for d in _plan(_config(method), cams, points, smooth).decisions if d.name == "levels"]
 
 
+def test_lambertian_colours_get_no_sh_a_view_dependent_scene_keeps_the_asked_degree():
+    """9 views of the same points under 3/255 sensor noise: one colour per point in every view (spread at the
+    noise's own, 0.8x) gets degree 0; the same points 0.1 brighter from one end of the views to the other (3.5x the
+    noise) keep degree 3. Splatfacto decides the same way (the rule reads the images, not the loss)."""
+    cams, points = synthetic.forward_facing(9)
+    base = np.random.default_rng(1).uniform(0.2, 0.8, size=(len(points), 3))
+    shift = np.linspace(-0.05, 0.05, 9)[:, None, None]
+    rng = np.random.default_rng(5)
+
+    def noisy(images):
+        return [torch.tensor(np.clip(np.round(image.numpy() + rng.normal(0, 3, image.shape)), 0, 255),
+                             dtype=torch.uint8) for image in images]
+
+    lambertian = noisy(synthetic.draw(cams, points, np.broadcast_to(base, (9, *base.shape)), synthetic.texture()))
+    shiny = noisy(synthetic.draw(cams, points, np.clip(base + shift, 0, 1), synthetic.texture()))
+    for method in ("kc-splatfacto", "splatfacto"):
+        flat = _decision(_plan(_config(method), cams, points, lambertian), "sh")
+        assert (flat.field, flat.chosen, flat.asked) == ("pipeline.model.sh_degree", 0, 3)
+        assert _decision(_plan(_config(method), cams, points, shiny), "sh").chosen == 3
+    no_points = _decision(make_scene_plan(_config(), lambertian, cams, None, "synthetic"), "sh")
+    assert no_points.chosen == 3  # nothing measured: the asked degree
+
+
 def test_a_white_backdrop_gets_a_white_background_a_textured_scene_the_asked_random():
     cams, points = synthetic.forward_facing(4)
     white = np.ones((synthetic.HEIGHT, synthetic.WIDTH, 3))
@@ -148,7 +171,7 @@ def test_the_table_names_every_decision_and_the_file_records_what_a_resume_appli
     cams, points = synthetic.ring(8)
     plan = _plan(_config(), cams, points)
     table = plan.table()
-    for name in ("downscales", "schedule", "cbc", "background", "levels", "kc bands", "sh degree"):
+    for name in ("downscales", "schedule", "cbc", "background", "levels", "kc bands", "sh"):
         assert f"  {name} " in table
     assert "(asked 30000)" in table and "--pipeline.model.plan off" in table
     path = plan.write(tmp_path)
