@@ -366,11 +366,6 @@ def markdown_table(
     return "\n".join(lines + notes) + "\n"
 
 
-def _mean_or_nan(values: Sequence[float | None]) -> float:
-    """The mean, or NaN where a value is missing (a run that logged no such clock)."""
-    return float("nan") if any(v is None for v in values) else float(np.mean(np.asarray(values, dtype=np.float64)))
-
-
 def mean_interval(values: Sequence[float], level: float = INTERVAL_LEVEL) -> tuple[float, float] | None:
     """Student-t interval on the mean of ``values`` (paired differences over seeds): mean -/+ t_{(1+level)/2, n-1}
     s / sqrt(n), s the sample std (ddof 1). None for fewer than two values."""

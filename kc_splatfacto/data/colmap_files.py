@@ -44,7 +44,6 @@ MODEL_NAMES = {model_id: name for name, (model_id, _) in COLMAP_CAMERA_MODELS.it
 #: models whose first parameter is the one focal length (the others have fx, fy first)
 SINGLE_FOCAL_MODELS = ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "FOV", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE")
 INVALID_POINT3D_ID = -1
-POINT3D_ID_UNSET = 2**64 - 1  # the binary format's invalid id (uint64 max)
 
 
 def _unsupported_model(name: str, supported: tuple[str, ...], where: str) -> DataParserError:
@@ -162,14 +161,6 @@ def check_images_txt(path: Path, camera_ids: set[int], point_ids: set[int] | Non
                     f"{points_where}: image '{name}' observes 3D point {point_id}, which points3D.txt does not hold"
                 )
         i += 2
-    return ids
-
-
-def point_ids_txt(path: Path) -> set[int]:
-    ids = set()
-    for number, line in _data_lines(path):
-        if line and not line.startswith("#"):
-            ids.add(_number(line.split()[0], int, f"{path}:{number}", "POINT3D_ID"))
     return ids
 
 

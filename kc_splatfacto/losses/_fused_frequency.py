@@ -30,6 +30,7 @@ import torch
 from torch import Tensor
 
 from kc_splatfacto.losses.wavelets import (
+    VARIANCE_REL_EPS,
     _correlation_taps,
     _extension_index,
     filter_length,
@@ -38,8 +39,6 @@ from kc_splatfacto.losses.wavelets import (
 
 POWER_FLOOR = 1e-30
 """floor of the image power s^2 (as the level-by-level path): only an all-zero image reaches it"""
-VARIANCE_REL_EPS = 1e-12
-"""eps on a normalised band's variance (frequency.VARIANCE_REL_EPS, restated to keep this module a leaf)"""
 
 
 # --------------------------------------------------------------------------------------------------- the plan

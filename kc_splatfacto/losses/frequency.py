@@ -45,7 +45,13 @@ from torch import Tensor, nn
 from kc_splatfacto import backend
 from kc_splatfacto.losses import _fused_frequency as fused
 from kc_splatfacto.losses._frequency_autograd import Moments, level_moments, weighted_band_l1
-from kc_splatfacto.losses.wavelets import WaveletCoeffs, dropped_levels_phrase, dwt2, supported_levels
+from kc_splatfacto.losses.wavelets import (
+    VARIANCE_REL_EPS,
+    WaveletCoeffs,
+    dropped_levels_phrase,
+    dwt2,
+    supported_levels,
+)
 from kc_splatfacto.settings import check_settings, integer, real, setting
 
 WaveName = Literal["haar", "db1", "db2", "db3", "db4", "db5", "db6", "db7", "db8", "db9", "db10"]
@@ -56,16 +62,6 @@ Weighting = Literal["paper", "fine", "uniform"]
 WEIGHTINGS: tuple[str, ...] = Weighting.__args__  # type: ignore[attr-defined]
 LowpassWeighting = Literal["halving", "uniform"]
 LOWPASS_WEIGHTINGS: tuple[str, ...] = LowpassWeighting.__args__  # type: ignore[attr-defined]
-# Every statistic is computed on the bands divided by the image's RMS coefficient magnitude s (detached; by Parseval
-# ~ the RMS pixel): kurtosis and correlation do not depend on scale, and covariance is s^2 cov(c / s) exactly, so
-# nothing changes mathematically, but every intermediate is O(1) whatever the intensity scale (x1e4, x1e-6), and the
-# backward of rsqrt(m2 + eps) stays far from float32 overflow even for an all-black image.
-# eps on a normalized band's variance: 1e-12 = a standard deviation of 1e-6 of the image's RMS, ~10x above float32
-# rounding noise of the transform and ~4000x below an 8-bit quantization step. Every real band is untouched (a
-# sigma-3 blurred photo's finest diagonal band, std 2e-5 RMS, keeps its kurtosis to 1%), while a constant or
-# rounding-noise band (variance ~0) gets kurtosis -3 with a bounded gradient instead of 0/0. docs/losses.md has the
-# measured sweep.
-VARIANCE_REL_EPS = 1e-12
 
 
 @dataclass
@@ -111,12 +107,6 @@ class FrequencyLossConfig:
         """Every weight zero (Splatfacto), the paper's DWT settings kept for the logged band kurtosis."""
         weights: dict[str, Any] = {term.weight_field: 0.0 for term in TERMS}
         return cls(**weights)
-
-    @classmethod
-    def from_fields(cls, holder: object) -> FrequencyLossConfig:
-        """These settings read from the attributes of the same names on ``holder`` (a nerfstudio model config that
-        inherits them): the field list is this dataclass's, written once."""
-        return cls(**{field.name: getattr(holder, field.name) for field in dataclasses.fields(cls)})
 
     def active_terms(self) -> list[tuple[FrequencyTerm, float]]:
         """The terms of :data:`TERMS` whose weight is non-zero, with their weight."""

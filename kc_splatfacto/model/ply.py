@@ -24,10 +24,7 @@ import numpy as np
 import torch
 
 from kc_splatfacto.data.ply import read_ply_vertices
-from kc_splatfacto.model.export import PARAM_NAMES, ExportResult, export_gaussians
-
-#: The parameter names of ``model.gauss_params`` that a PLY file carries.
-PLY_PARAM_NAMES = PARAM_NAMES
+from kc_splatfacto.model.export import ExportResult, export_gaussians
 
 #: What :func:`export_ply` returns (the path, rows written and rows dropped for non-finite values).
 PlyExportResult = ExportResult

@@ -549,7 +549,7 @@ class SplatfactoModel(torch.nn.Module):
             if not settings.active:
                 return None
             self._frequency_loss = settings.setup()
-            # a non-finite render is caught once per step with the loss and gradients (TrainingState._problem), not
+            # a non-finite render is caught once per step with the loss and gradients (TrainingState._verdict), not
             # by a check of its own: each is a host synchronisation on CUDA
             self._frequency_loss.check_finite = False
             # too small an image for the DWT's levels is said here, in the resolution schedule's terms
