@@ -45,6 +45,7 @@ from torch import Tensor, nn
 from kc_splatfacto import backend
 from kc_splatfacto.losses import _fused_frequency as fused
 from kc_splatfacto.losses._frequency_autograd import Moments, level_moments, weighted_band_l1
+from kc_splatfacto.losses.layout import channels_first
 from kc_splatfacto.losses.wavelets import (
     VARIANCE_REL_EPS,
     WaveletCoeffs,
@@ -641,7 +642,7 @@ class FrequencyLoss(nn.Module):
         if mask is not None:
             mask = mask.to(render)
             render, gt = render * mask, gt * mask
-        return self(_channels_first(render), self.target(_channels_first(gt), key))
+        return self(channels_first(render), self.target(channels_first(gt), key))
 
     def target(self, gt: Tensor, key: Hashable | None = None) -> WaveletBands:
         """:meth:`prepare_target` of gt [B, C, H, W], cached under ``key`` (None: not cached)."""
@@ -726,11 +727,6 @@ class FrequencyLoss(nn.Module):
     def takes_fused_path(self, pred: Tensor) -> bool:
         """Whether :meth:`forward` computes the active terms of ``pred`` with the fused Function."""
         return self._takes_fused_path(pred, self.config.active_terms())
-
-
-def _channels_first(image: Tensor) -> Tensor:
-    """[H, W, C] -> [1, C, H, W] and [B, H, W, C] -> [B, C, H, W] (views)."""
-    return image.permute(2, 0, 1)[None] if image.dim() == 3 else image.permute(0, 3, 1, 2)
 
 
 def _compute_dtype(dtype: torch.dtype) -> torch.dtype:

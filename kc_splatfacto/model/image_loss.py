@@ -21,6 +21,7 @@ from torch import Tensor
 
 from kc_splatfacto.losses import _fused_frequency as fused
 from kc_splatfacto.losses.frequency import FrequencyLoss
+from kc_splatfacto.losses.layout import channels_first
 from kc_splatfacto.losses.photometric import dssim, l1
 
 GRAPH_CHECK_RTOL = 1e-4
@@ -28,11 +29,6 @@ GRAPH_CHECK_RTOL = 1e-4
 
 Capture = Callable[[Callable[..., Any], tuple[Tensor, ...]], Callable[..., Any]]
 """(region, sample inputs) -> the replayable region (``torch.cuda.make_graphed_callables``'s shape)"""
-
-
-def _bchw(image: Tensor) -> Tensor:
-    """[H, W, C] -> [1, C, H, W] (a view)."""
-    return image.permute(2, 0, 1)[None]
 
 
 def _make_graphed(region: Callable[..., Any], sample: tuple[Tensor, ...]) -> Callable[..., Any]:
@@ -70,7 +66,7 @@ class ImageLoss:
 
     def eager(self, render: Tensor, gt: Tensor, key: Hashable | None = None) -> dict[str, Tensor]:
         """The loss terms computed op by op (the CPU's path, and the graphs' reference)."""
-        pred, target = _bchw(render), _bchw(gt)
+        pred, target = channels_first(render), channels_first(gt)
         lam = self.ssim_lambda
         losses = {"main_loss": (1 - lam) * l1(pred, target) + lam * dssim(pred, target)}
         if self.frequency_loss is not None:
@@ -94,9 +90,9 @@ class ImageLoss:
         present: list[bool] = []  # which of the slot target's tensors (weighted bands, kurtosis, L_cov) exist
         slot_tensors: tuple[Tensor, ...] = ()
         if frequency is not None:
-            if not frequency.takes_fused_path(_bchw(render)):
+            if not frequency.takes_fused_path(channels_first(render)):
                 return None
-            prepared = frequency.fused_target(render.detach().permute(2, 0, 1), frequency.target(_bchw(gt), key))
+            prepared = frequency.fused_target(render.detach().permute(2, 0, 1), frequency.target(channels_first(gt), key))
             if prepared is None:
                 return None
             plan, slots, weights = prepared
@@ -126,7 +122,7 @@ class ImageLoss:
         frequency = self.frequency_loss
 
         def region(render: Tensor, gt: Tensor, *slot_tensors: Tensor) -> tuple[Tensor, ...]:
-            pred, target = _bchw(render), _bchw(gt)
+            pred, target = channels_first(render), channels_first(gt)
             outputs = [(1 - lam) * l1(pred, target) + lam * dssim(pred, target)]
             if frequency is not None and plan is not None:
                 given = iter(slot_tensors)

@@ -20,6 +20,7 @@ import torch.nn.functional as F
 
 from kc_splatfacto.data.outputs import Cameras
 from kc_splatfacto.losses.frequency import FrequencyLoss, FrequencyLossConfig, WaveletBands, mean_band_kurtosis
+from kc_splatfacto.losses.layout import channels_first
 from kc_splatfacto.losses.wavelets import dropped_levels_phrase, supported_levels
 from kc_splatfacto.metrics import mean_ssim, psnr
 from kc_splatfacto.model.gaussians import init_gaussian_params
@@ -256,11 +257,6 @@ def resize_image(image: torch.Tensor, d: int) -> torch.Tensor:
     if d == 1:
         return image
     return F.avg_pool2d(image.permute(2, 0, 1)[None], kernel_size=d, stride=d)[0].permute(1, 2, 0)
-
-
-def _bchw(image: torch.Tensor) -> torch.Tensor:
-    """[H, W, C] -> [1, C, H, W] (a view)."""
-    return image.permute(2, 0, 1)[None]
 
 
 def downscale_mask(mask: torch.Tensor, d: int) -> torch.Tensor:
@@ -652,7 +648,7 @@ class SplatfactoModel(torch.nn.Module):
         ``kurtosis_render`` / ``kurtosis_gt``: per detail band (finest level first, H V D), channel-averaged."""
         pred_img, gt_img, mask = self._masked_pair(outputs, batch)
         metrics: dict[str, Any] = {
-            "psnr": float(psnr(_bchw(pred_img), _bchw(gt_img), mask=None if mask is None else _bchw(mask))),
+            "psnr": float(psnr(channels_first(pred_img), channels_first(gt_img), mask=None if mask is None else channels_first(mask))),
             "gaussian_count": self.num_points,
         }
         if with_kurtosis:
@@ -669,8 +665,8 @@ class SplatfactoModel(torch.nn.Module):
         """Evaluation metrics of one view: ``psnr`` and ``ssim`` (mean of the SSIM map), both over the mask when the
         batch has one; also returns (pred, gt) as [1, 3, H, W] (masked) for further metrics (LPIPS)."""
         pred_img, gt_img, mask = self._masked_pair(outputs, batch)
-        pred_bchw, gt_bchw = _bchw(pred_img).float(), _bchw(gt_img)
-        mask = None if mask is None else _bchw(mask)
+        pred_bchw, gt_bchw = channels_first(pred_img).float(), channels_first(gt_img)
+        mask = None if mask is None else channels_first(mask)
         metrics = {"psnr": float(psnr(pred_bchw, gt_bchw, mask=mask)),
                    "ssim": float(mean_ssim(pred_bchw, gt_bchw, mask=mask))}
         return metrics, (pred_bchw, gt_bchw)
@@ -688,5 +684,5 @@ class SplatfactoModel(torch.nn.Module):
                 self._kurtosis_probe = self.frequency_loss or self.config.frequency.setup()
                 self._kurtosis_probe.warn_dropped_levels = False
             with torch.no_grad():
-                image = self._kurtosis_probe.bands(_bchw(image.detach().float()), covariance=False, every_level=True)
+                image = self._kurtosis_probe.bands(channels_first(image.detach().float()), covariance=False, every_level=True)
         return mean_band_kurtosis(image)

@@ -73,11 +73,6 @@ def on_cuda(device: Any) -> bool:
     return torch.device(device).type == "cuda"
 
 
-def _bchw(image: torch.Tensor) -> torch.Tensor:
-    """[H, W, C] -> [1, C, H, W] (a view)."""
-    return image.permute(2, 0, 1)[None]
-
-
 class KCSplatfactoModel(SplatfactoModel):
     """nerfstudio's ``SplatfactoModel`` + KC-3DGS's frequency losses, and a CPU path (see the module docstring)."""
 
