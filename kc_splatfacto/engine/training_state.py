@@ -2,9 +2,10 @@
 loop).
 
 :class:`TrainingState` holds the model (the Gaussians, their rendering and the loss), one Adam per parameter group
-and the learning-rate schedules, the density-control strategy (any object with gsplat's ``Strategy`` interface:
-:class:`~kc_splatfacto.model.strategy.DefaultStrategy`, :class:`~kc_splatfacto.model.mcmc.MCMCStrategy`) and the
-strategy's state. :meth:`TrainingState.step` takes one step on one batch:
+and the learning-rate schedules, the density-control strategy (a :class:`~kc_splatfacto.model.strategy.DensityStrategy`, gsplat's ``Strategy``
+interface plus ``refines_at`` and ``cap``: :class:`~kc_splatfacto.model.strategy.DefaultStrategy`,
+:class:`~kc_splatfacto.model.mcmc.MCMCStrategy`; anything else a TypeError naming what it lacks) and the strategy's
+state. :meth:`TrainingState.step` takes one step on one batch:
 
 1. the model set to the step, the batch's camera rendered, the strategy's pre-backward hook on the render's ``info``;
 2. the loss terms (``model.get_loss_dict``), their sum, backward;
@@ -46,9 +47,8 @@ import torch
 
 from kc_splatfacto.engine.optimizers import OptimizersConfig
 from kc_splatfacto.model import ops
-from kc_splatfacto.model.mcmc import MCMCStrategy
 from kc_splatfacto.model.splatfacto import SplatfactoModel
-from kc_splatfacto.model.strategy import DefaultStrategy, NoGaussiansLeftError
+from kc_splatfacto.model.strategy import DensityStrategy, NoGaussiansLeftError, as_density_strategy
 from kc_splatfacto.render.errors import NonFiniteInputError
 
 GRAD_OVERFLOW = 1e18
@@ -130,26 +130,24 @@ class TrainingState:
     Args:
         model: the model (its Gaussians live in ``model.gauss_params``, which density control rewrites).
         optimizers: the optimizer and schedule of each parameter group.
-        strategy: density control with gsplat's ``Strategy`` interface; by default the one the model's config
-            describes (``strategy: default | mcmc``).
+        strategy: density control (:class:`~kc_splatfacto.model.strategy.DensityStrategy`); by default the one the
+            model's config describes (``strategy: default | mcmc``).
         device_verdict: take the verdict of a step without refinement on the device (module docstring); it needs
             fused Adam and a strategy that says on which steps it refines (``refines_at``), else the host takes it.
     """
 
     def __init__(self, model: SplatfactoModel, optimizers: OptimizersConfig,
-                 strategy: DefaultStrategy | MCMCStrategy | None = None, device_verdict: bool = False):
+                 strategy: DensityStrategy | None = None, device_verdict: bool = False):
         self.model = model
         self.optimizers_config = optimizers
         self.device_verdict = device_verdict
-        self.strategy = strategy if strategy is not None else model.config.density_strategy(model.num_train_data)
-        if isinstance(self.strategy, MCMCStrategy):
-            self.strategy.check_initial_count(model.num_points)
-            self.strategy_state: dict[str, Any] = self.strategy.initialize_state()
-        else:
-            self.strategy_state = self.strategy.initialize_state(scene_scale=model.scene_scale)
+        self.strategy: DensityStrategy = as_density_strategy(
+            strategy if strategy is not None else model.config.density_strategy(model.num_train_data))
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
         self.schedulers: dict[str, Any] = {}
         self._build_optimizers()
+        self.strategy.check_sanity(model.gauss_params, self.optimizers)
+        self.strategy_state: dict[str, Any] = self.strategy.initialize_state(scene_scale=model.scene_scale)
 
     def _build_optimizers(self) -> None:
         # nominal schedules (nerfstudio's): steps_scale only, never the run's length, so a short run is the first
@@ -228,8 +226,7 @@ class TrainingState:
         skips a bad update), and no refinement at this step."""
         if not self.device_verdict:
             return False
-        refines_at = getattr(self.strategy, "refines_at", None)
-        if refines_at is None or refines_at(step):
+        if self.strategy.refines_at(step):
             return False
         return all(isinstance(opt, torch.optim.Adam) and opt.defaults.get("fused") for opt in self.optimizers.values())
 
@@ -254,12 +251,10 @@ class TrainingState:
         params = self.model.gauss_params
         if good is not None:
             info = {**info, "radii": info["radii"] * good}
-        if isinstance(self.strategy, MCMCStrategy):
-            means_lr = self.optimizers["means"].param_groups[0]["lr"]
-            factor = None if good is None else good.to(params["means"].dtype)
-            return self.strategy.step_post_backward(params, self.optimizers, self.strategy_state, step, info,
-                                                    lr=means_lr, noise_factor=factor)
-        return self.strategy.step_post_backward(params, self.optimizers, self.strategy_state, step, info)
+        means_lr = self.optimizers["means"].param_groups[0]["lr"]
+        factor = None if good is None else good.to(params["means"].dtype)
+        return self.strategy.step_post_backward(params, self.optimizers, self.strategy_state, step, info,
+                                                lr=means_lr, noise_factor=factor)
 
     # ----------------------------------------------------------------------------------------------- repairs, caps
     @torch.no_grad()
@@ -280,10 +275,7 @@ class TrainingState:
     def cap_gaussians(self, count: int) -> None:
         """Density control adds no Gaussians past ``count`` from now on (a memory budget reached): the strategy's
         cap lowered (``max_gaussians``; an MCMC strategy's ``cap_max``), never raised."""
-        for name in ("max_gaussians", "cap_max"):
-            if hasattr(self.strategy, name):
-                current = getattr(self.strategy, name)
-                setattr(self.strategy, name, count if current is None else min(int(current), int(count)))
+        self.strategy.cap(count)
 
     # ----------------------------------------------------------------------------------------------- checkpoints
     def state_dict(self) -> dict[str, Any]:

@@ -29,7 +29,7 @@ import torch
 
 from kc_splatfacto.errors import UserError
 from kc_splatfacto.model import ops
-from kc_splatfacto.model.strategy import NoGaussiansLeftError
+from kc_splatfacto.model.strategy import NoGaussiansLeftError, check_parameters
 
 GROWTH_PER_REFINEMENT = 1.05
 """each refinement adds Gaussians up to 1.05 times the count (gsplat's and the paper's), capped by ``cap_max``"""
@@ -57,11 +57,20 @@ class MCMCStrategy:
     """what the rasterizer is asked for (MCMC reads no screen-space gradient): nerfstudio's ``get_outputs`` passes
     ``strategy.absgrad`` whichever strategy it holds (a class attribute, not a setting)"""
 
-    def initialize_state(self) -> dict[str, Any]:
-        """The running state: empty. gsplat keeps its binomial table here; ours is a cached constant
+    def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]:
+        """The running state: empty (``scene_scale``, the interface's, is not read). gsplat keeps its binomial table here; ours is a cached constant
         (:func:`~kc_splatfacto.model.relocation.binomial_table`), so that the state holds only per-Gaussian rows,
         which the tensor surgery of ``ops`` (non-finite removal included) cuts and grows with the Gaussians."""
         return {}
+
+    def check_sanity(self, params: dict[str, torch.Tensor], optimizers: dict[str, Any]) -> None:
+        """Every parameter it relocates and adds is there with its optimizer, and the run starts within its cap."""
+        check_parameters(params, optimizers, "MCMCStrategy")
+        self.check_initial_count(len(params["means"]))
+
+    def cap(self, count: int) -> None:
+        """Hold no more than ``count`` Gaussians from now on (``cap_max`` lowered, never raised)."""
+        self.cap_max = min(int(self.cap_max), int(count))
 
     def check_initial_count(self, n_gaussians: int) -> None:
         """Raise GaussianCapError when the run would start above its cap (relocation and growth never shrink it)."""

@@ -26,7 +26,7 @@ clamped to 2 ``prune_opa``.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import torch
@@ -49,6 +49,56 @@ def _stats_kernel_applies(grads: torch.Tensor, radii: torch.Tensor, state: dict[
 
 class NoGaussiansLeftError(RuntimeError):
     """Density control removed every Gaussian."""
+
+
+PARAMETER_NAMES = ("means", "scales", "quats", "opacities", "features_dc", "features_rest")
+"""the Gaussians' parameters density control cuts and grows (each with an optimizer of the same name)"""
+
+
+@runtime_checkable
+class DensityStrategy(Protocol):
+    """What a training loop calls on density control: gsplat's ``Strategy`` (``check_sanity``,
+    ``initialize_state``, ``step_pre_backward``, ``step_post_backward``), plus ``refines_at`` (the steps whose host
+    work a device-side verdict cannot replace) and ``cap`` (a memory budget reached). :class:`DefaultStrategy` and
+    :class:`~kc_splatfacto.model.mcmc.MCMCStrategy` implement it; the loop never asks which one it holds."""
+
+    absgrad: bool
+    """whether the rasterizer must give the absolute screen-space gradients"""
+
+    def check_sanity(self, params: dict[str, torch.Tensor], optimizers: dict[str, Any]) -> None: ...
+
+    def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]: ...
+
+    def step_pre_backward(self, params, optimizers, state: dict[str, Any], step: int,
+                          info: dict[str, Any]) -> None: ...
+
+    def step_post_backward(self, params, optimizers, state: dict[str, Any], step: int, info: dict[str, Any],
+                           lr: float, noise_factor: torch.Tensor | None = None) -> dict[str, int]: ...
+    """after the optimizers' step: the strategy's statistics and refinement; ``lr`` is the means' learning rate after
+    this step's schedule update and ``noise_factor`` a device scalar multiplying any noise (0: the device's verdict
+    rejected the step), for a strategy that perturbs the means (MCMC)"""
+
+    def refines_at(self, step: int) -> bool: ...
+
+    def cap(self, count: int) -> None: ...
+
+
+def check_parameters(params: dict[str, torch.Tensor], optimizers: dict[str, Any], who: str) -> None:
+    """gsplat's sanity check: every parameter density control cuts and grows is there with its optimizer."""
+    missing = [name for name in PARAMETER_NAMES if name not in params or name not in optimizers]
+    if missing:
+        raise KeyError(f"{who}: the Gaussians need the parameters and optimizers {list(PARAMETER_NAMES)}; "
+                       f"missing {missing}")
+
+
+def as_density_strategy(strategy: Any) -> DensityStrategy:
+    """``strategy`` if it has the :class:`DensityStrategy` interface, else a TypeError naming what it lacks."""
+    lacking = [name for name in ("absgrad", "check_sanity", "initialize_state", "step_pre_backward",
+                                 "step_post_backward", "refines_at", "cap") if not hasattr(strategy, name)]
+    if lacking:
+        raise TypeError(f"{type(strategy).__name__} is not a density strategy: it lacks {', '.join(lacking)} "
+                        "(kc_splatfacto.model.strategy.DensityStrategy; DefaultStrategy and MCMCStrategy have them)")
+    return strategy
 
 
 @dataclass
@@ -76,6 +126,14 @@ class DefaultStrategy:
     Gaussian a large 2D gradient, and the count doubles at each refinement until memory runs out)."""
     key_for_gradient: str = "means2d"
 
+    def check_sanity(self, params: dict[str, torch.Tensor], optimizers: dict[str, Any]) -> None:
+        """Every parameter it grows and prunes is there, with its optimizer."""
+        check_parameters(params, optimizers, "DefaultStrategy")
+
+    def cap(self, count: int) -> None:
+        """Grow no Gaussians past ``count`` from now on (``max_gaussians`` lowered, never raised)."""
+        self.max_gaussians = int(count) if self.max_gaussians is None else min(int(self.max_gaussians), int(count))
+
     def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]:
         """Running statistics: ``grad2d`` [N] and ``count`` [N] (and ``radii`` [N]), created lazily."""
         state: dict[str, Any] = {"grad2d": None, "count": None, "scene_scale": float(scene_scale)}
@@ -92,9 +150,11 @@ class DefaultStrategy:
             means2d.retain_grad()
 
     def step_post_backward(
-        self, params, optimizers, state: dict[str, Any], step: int, info: dict[str, Any]
+        self, params, optimizers, state: dict[str, Any], step: int, info: dict[str, Any], lr: float = 0.0,
+        noise_factor: torch.Tensor | None = None,
     ) -> dict[str, int]:
-        """Accumulate statistics, then grow/prune/reset on the schedule. Returns counts of what it did."""
+        """Accumulate statistics, then grow/prune/reset on the schedule. Returns counts of what it did. (``lr`` and
+        ``noise_factor``, the interface's, are MCMC's: this strategy adds no noise.)"""
         report = {"duplicated": 0, "split": 0, "pruned": 0, "opacity_reset": 0}
         if step >= self.refine_stop_iter:
             return report

@@ -199,7 +199,7 @@ class KCSplatfactoModel(SplatfactoModel):
     def step_post_backward(self, step):
         """Density control after the optimizer step (nerfstudio's callback, after its schedules stepped): MCMC's
         takes the means' learning rate, nerfstudio main's ``schedulers["means"]`` rate, read from their optimizer."""
-        if not isinstance(self.strategy, MCMCStrategy):
+        if self.config.strategy != "mcmc":  # nerfstudio's own (gsplat's DefaultStrategy)
             return super().step_post_backward(step)
         self.strategy.step_post_backward(self.gauss_params, self.optimizers, self.strategy_state, step, self.info,
                                          lr=self.optimizers["means"].param_groups[0]["lr"])

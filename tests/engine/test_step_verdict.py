@@ -97,7 +97,7 @@ def test_the_verdict_read_later_says_what_the_host_says(tmp_path):
     assert bad.skipped is None and bad.losses  # the step ran; its update was not applied
 
 
-@pytest.mark.parametrize("why", ["unfused Adam", "a strategy without refines_at"])
+@pytest.mark.parametrize("why", ["unfused Adam", "a strategy that refines at every step"])
 def test_the_host_takes_the_verdict_where_the_device_cannot(tmp_path, why):
     if why == "unfused Adam":  # torch's per-tensor Adam has no found_inf
         _, _, kinds, _ = train(tmp_path, "splatfacto", device_verdict=True, fused=False)
@@ -105,18 +105,34 @@ def test_the_host_takes_the_verdict_where_the_device_cannot(tmp_path, why):
         pipeline, config = demo_pipeline(tmp_path, "splatfacto", seed=0)
         strategy = config.pipeline.model.density_strategy(pipeline.model.num_train_data)
 
-        class Opaque:  # gsplat's Strategy interface only
+        class Busy:  # host work at every step: the device cannot take a verdict it would have to undo
             absgrad = strategy.absgrad
 
+            def refines_at(self, step):
+                return True
+
             def __getattr__(self, name):
-                if name == "refines_at":
-                    raise AttributeError(name)
                 return getattr(strategy, name)
 
-        state = TrainingState(pipeline.model, config.optimizers, strategy=Opaque(), device_verdict=True)
+        state = TrainingState(pipeline.model, config.optimizers, strategy=Busy(), device_verdict=True)
         kinds = "".join("H" if state.step(s, pipeline.datamanager.next_train()).verdict is None else "D"
                         for s in range(4))
     assert "D" not in kinds
+
+
+def test_a_strategy_without_the_interface_is_refused_by_name(tmp_path):
+    pipeline, config = demo_pipeline(tmp_path, "splatfacto", seed=0)
+    strategy = config.pipeline.model.density_strategy(pipeline.model.num_train_data)
+
+    class GsplatOnly:  # gsplat's Strategy interface, without refines_at and cap
+        absgrad = strategy.absgrad
+        check_sanity = strategy.check_sanity
+        initialize_state = strategy.initialize_state
+        step_pre_backward = strategy.step_pre_backward
+        step_post_backward = strategy.step_post_backward
+
+    with pytest.raises(TypeError, match="GsplatOnly is not a density strategy: it lacks refines_at, cap"):
+        TrainingState(pipeline.model, config.optimizers, strategy=GsplatOnly())
 
 
 @pytest.mark.parametrize("device", [

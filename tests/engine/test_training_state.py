@@ -30,9 +30,9 @@ class RecordingStrategy(DefaultStrategy):
 
     infos: list
 
-    def step_post_backward(self, params, optimizers, state, step, info):
+    def step_post_backward(self, params, optimizers, state, step, info, lr, noise_factor=None):
         self.infos.append(info)
-        return super().step_post_backward(params, optimizers, state, step, info)
+        return super().step_post_backward(params, optimizers, state, step, info, lr, noise_factor)
 
 
 def test_the_step_sets_the_model_s_step_and_what_the_schedules_read(tmp_path):

@@ -9,7 +9,8 @@ from scipy.spatial.transform import Rotation
 
 from kc_splatfacto.model import ops
 from kc_splatfacto.model.gaussians import init_gaussian_params
-from kc_splatfacto.model.strategy import DefaultStrategy, NoGaussiansLeftError
+from kc_splatfacto.model.mcmc import MCMCStrategy
+from kc_splatfacto.model.strategy import PARAMETER_NAMES, DefaultStrategy, DensityStrategy, NoGaussiansLeftError
 
 
 def make_params(n=6, seed=0):
@@ -327,3 +328,21 @@ def test_split_children_opacity_with_and_without_the_revised_formula(revised):
     assert report["split"] == 1 and len(params["means"]) == 2
     expected = 1 - math.sqrt(1 - 0.64) if revised else 0.64
     np.testing.assert_allclose(torch.sigmoid(params["opacities"]).detach().flatten().numpy(), [expected] * 2, rtol=1e-5)
+
+
+@pytest.mark.parametrize("make", [lambda: DefaultStrategy(max_gaussians=None), lambda: MCMCStrategy(cap_max=500)])
+def test_both_strategies_have_the_interface_and_a_cap_only_lowers(make):
+    """The training loop holds either through DensityStrategy alone: a cap lowers the growth limit, never raises it,
+    and the sanity check names a missing parameter."""
+    strategy = make()
+    assert isinstance(strategy, DensityStrategy)
+    limit = "max_gaussians" if isinstance(strategy, DefaultStrategy) else "cap_max"
+    strategy.cap(300)
+    strategy.cap(400)
+    assert getattr(strategy, limit) == 300
+    params = {name: torch.zeros(4, 3) for name in PARAMETER_NAMES}
+    optimizers = {name: object() for name in PARAMETER_NAMES}
+    strategy.check_sanity(params, optimizers)
+    del optimizers["opacities"]
+    with pytest.raises(KeyError, match="missing \\['opacities'\\]"):
+        strategy.check_sanity(params, optimizers)
