@@ -22,7 +22,6 @@ Every step: the means get noise scaled by ``lr x noise_lr`` (``ops.inject_noise_
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -64,7 +63,7 @@ class MCMCStrategy:
         which the tensor surgery of ``ops`` (non-finite removal included) cuts and grows with the Gaussians."""
         return {}
 
-    def check_sanity(self, params: Mapping[str, torch.Tensor], optimizers: Mapping[str, Any]) -> None:
+    def check_sanity(self, params, optimizers) -> None:
         """Every parameter it relocates and adds is there with its optimizer, and the run starts within its cap."""
         check_parameters(params, optimizers, "MCMCStrategy")
         self.check_initial_count(len(params["means"]))

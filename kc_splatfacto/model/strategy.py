@@ -25,7 +25,6 @@ clamped to 2 ``prune_opa``.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
@@ -66,7 +65,7 @@ class DensityStrategy(Protocol):
     absgrad: bool
     """whether the rasterizer must give the absolute screen-space gradients"""
 
-    def check_sanity(self, params: Mapping[str, torch.Tensor], optimizers: Mapping[str, Any]) -> None: ...
+    def check_sanity(self, params, optimizers) -> None: ...
 
     def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]: ...
 
@@ -84,7 +83,7 @@ class DensityStrategy(Protocol):
     def cap(self, count: int) -> None: ...
 
 
-def check_parameters(params: Mapping[str, torch.Tensor], optimizers: Mapping[str, Any], who: str) -> None:
+def check_parameters(params, optimizers, who: str) -> None:
     """gsplat's sanity check: every parameter density control cuts and grows is there with its optimizer."""
     missing = [name for name in PARAMETER_NAMES if name not in params or name not in optimizers]
     if missing:
@@ -127,7 +126,7 @@ class DefaultStrategy:
     Gaussian a large 2D gradient, and the count doubles at each refinement until memory runs out)."""
     key_for_gradient: str = "means2d"
 
-    def check_sanity(self, params: Mapping[str, torch.Tensor], optimizers: Mapping[str, Any]) -> None:
+    def check_sanity(self, params, optimizers) -> None:
         """Every parameter it grows and prunes is there, with its optimizer."""
         check_parameters(params, optimizers, "DefaultStrategy")
 
