@@ -729,6 +729,24 @@ class FrequencyLoss(nn.Module):
         return self._takes_fused_path(pred, self.config.active_terms())
 
 
+def target_key(batch: dict[str, Any], downscale: int, random_background: bool) -> tuple[int, int] | None:
+    """Where a training loop caches a batch's ground-truth target (:meth:`FrequencyLoss.compare`'s ``key``): (the
+    training image's index, the resolution's divisor) when the composited ground truth is the same at every visit
+    (RGB, or RGBA over a fixed background), else None (RGBA over a ``random_background`` changes with every draw,
+    and a batch without ``image_idx`` names no image). Our model and the nerfstudio plugin both key by it.
+
+    >>> import torch
+    >>> target_key({"image": torch.zeros(4, 4, 3), "image_idx": 2}, 4, random_background=True)
+    (2, 4)
+    >>> target_key({"image": torch.zeros(4, 4, 4), "image_idx": 2}, 4, random_background=True) is None
+    True
+    """
+    fixed = batch["image"].shape[-1] == 3 or not random_background
+    if not fixed or batch.get("image_idx") is None:
+        return None
+    return int(batch["image_idx"]), downscale
+
+
 def _compute_dtype(dtype: torch.dtype) -> torch.dtype:
     """float32 for half precision (the detail coefficients' 4th powers need it, as in ``wavelets.dwt2``)."""
     return torch.float32 if dtype in (torch.float16, torch.bfloat16) else dtype

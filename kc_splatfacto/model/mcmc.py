@@ -119,3 +119,25 @@ class MCMCStrategy:
         if n_new > 0:
             ops.sample_add(params, optimizers, state, n_new, self.min_opacity)
         return n_new
+
+
+def splatfacto_mcmc(fields: Any, warmup_length: int, stop_split_at: int, refine_every: int) -> MCMCStrategy:
+    """nerfstudio main's MCMC from a Splatfacto model config's fields (``max_gs_num``, ``noise_lr``,
+    ``cull_alpha_thresh``: dead below it) and its step counts (kc-train's after ``steps_scale``); the one mapping both
+    models use."""
+    return MCMCStrategy(cap_max=fields.max_gs_num, noise_lr=fields.noise_lr, refine_start_iter=warmup_length,
+                        refine_stop_iter=stop_split_at, refine_every=refine_every,
+                        min_opacity=fields.cull_alpha_thresh)
+
+
+def mcmc_regularization(fields: Any, opacities: torch.Tensor, scales: torch.Tensor) -> dict[str, torch.Tensor]:
+    """nerfstudio main's MCMC loss terms from a model config's ``mcmc_opacity_reg`` and ``mcmc_scale_reg``:
+    ``mcmc_opacity_reg`` x mean opacity and ``mcmc_scale_reg`` x mean scale, each only when its weight is non-zero
+    (``opacities``: logits, ``scales``: log scales). Transparent Gaussians are what relocation moves, so the opacity
+    term feeds it."""
+    terms = {}
+    if fields.mcmc_opacity_reg > 0:
+        terms["mcmc_opacity_reg"] = fields.mcmc_opacity_reg * torch.sigmoid(opacities).abs().mean()
+    if fields.mcmc_scale_reg > 0:
+        terms["mcmc_scale_reg"] = fields.mcmc_scale_reg * torch.exp(scales).abs().mean()
+    return terms

@@ -19,13 +19,19 @@ import torch
 import torch.nn.functional as F
 
 from kc_splatfacto.data.outputs import Cameras
-from kc_splatfacto.losses.frequency import FrequencyLoss, FrequencyLossConfig, WaveletBands, mean_band_kurtosis
+from kc_splatfacto.losses.frequency import (
+    FrequencyLoss,
+    FrequencyLossConfig,
+    WaveletBands,
+    mean_band_kurtosis,
+    target_key,
+)
 from kc_splatfacto.losses.layout import channels_first
 from kc_splatfacto.losses.wavelets import dropped_levels_phrase, supported_levels
 from kc_splatfacto.metrics import mean_ssim, psnr
 from kc_splatfacto.model.gaussians import init_gaussian_params
 from kc_splatfacto.model.image_loss import ImageLoss
-from kc_splatfacto.model.mcmc import MCMCStrategy
+from kc_splatfacto.model.mcmc import MCMCStrategy, mcmc_regularization, splatfacto_mcmc
 from kc_splatfacto.model.strategy import DefaultStrategy
 from kc_splatfacto.render import SplitSH, rasterization
 from kc_splatfacto.render.constants import FAR_PLANE, NEAR_PLANE, SH_MAX_DEGREE
@@ -204,14 +210,7 @@ class SplatfactoModelConfig:
         reset), ``MCMCStrategy`` as nerfstudio's main branch does (dead below ``cull_alpha_thresh``)."""
         schedule = self.step_schedule()
         if self.strategy == "mcmc":
-            return MCMCStrategy(
-                cap_max=self.max_gs_num,
-                noise_lr=self.noise_lr,
-                refine_start_iter=schedule.warmup_length,
-                refine_stop_iter=schedule.stop_split_at,
-                refine_every=schedule.refine_every,
-                min_opacity=self.cull_alpha_thresh,
-            )
+            return splatfacto_mcmc(self, schedule.warmup_length, schedule.stop_split_at, schedule.refine_every)
         refine_every = schedule.refine_every
         reset_every = schedule.reset_alpha_every
         return DefaultStrategy(
@@ -587,10 +586,8 @@ class SplatfactoModel(torch.nn.Module):
         """Where the frequency loss caches this batch's GT target: (training image, resolution) when the composited
         GT is the same at every visit (RGB, or RGBA over a fixed background), else None (an RGBA image over a random
         background changes with every draw)."""
-        fixed = batch["image"].shape[-1] == 3 or not (self.training and self.config.background_color == "random")
-        if not fixed or batch.get("image_idx") is None:
-            return None
-        return int(batch["image_idx"]), self.get_downscale_factor()
+        return target_key(batch, self.get_downscale_factor(),
+                          self.training and self.config.background_color == "random")
 
     def get_loss_dict(self, outputs: dict[str, Any], batch: dict[str, Any]) -> dict[str, torch.Tensor]:
         """Splatfacto's ``main_loss`` = (1 - ssim_lambda) L1 + ssim_lambda (1 - SSIM); ``scale_reg`` when enabled;
@@ -628,17 +625,11 @@ class SplatfactoModel(torch.nn.Module):
         return self._image_loss
 
     def mcmc_regularization(self) -> dict[str, torch.Tensor]:
-        """With the mcmc strategy, nerfstudio's ``mcmc_opacity_reg`` x mean opacity and ``mcmc_scale_reg`` x mean
-        scale (each term only when its weight is non-zero): transparent Gaussians are what relocation moves, so the
-        opacity term feeds it; otherwise nothing."""
+        """With the mcmc strategy, nerfstudio main's opacity and scale terms (:func:`~.mcmc.mcmc_regularization`);
+        otherwise nothing."""
         if self.config.strategy != "mcmc":
             return {}
-        terms = {}
-        if self.config.mcmc_opacity_reg > 0:
-            terms["mcmc_opacity_reg"] = self.config.mcmc_opacity_reg * torch.sigmoid(self.opacities).abs().mean()
-        if self.config.mcmc_scale_reg > 0:
-            terms["mcmc_scale_reg"] = self.config.mcmc_scale_reg * torch.exp(self.scales).abs().mean()
-        return terms
+        return mcmc_regularization(self.config, self.opacities, self.scales)
 
     @torch.no_grad()
     def get_metrics_dict(

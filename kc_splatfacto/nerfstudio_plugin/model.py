@@ -24,8 +24,8 @@ import torch
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel, SplatfactoModelConfig, num_sh_bases
 
-from kc_splatfacto.losses.frequency import FrequencyLoss, FrequencyLossConfig
-from kc_splatfacto.model.mcmc import MCMCStrategy
+from kc_splatfacto.losses.frequency import FrequencyLoss, FrequencyLossConfig, target_key
+from kc_splatfacto.model.mcmc import mcmc_regularization, splatfacto_mcmc
 from kc_splatfacto.model.splatfacto import PlanDecision
 from kc_splatfacto.nerfstudio_plugin.cpu import (
     LPIPS_INSTALL,
@@ -89,10 +89,8 @@ class KCSplatfactoModel(SplatfactoModel):
         settings = self.config.frequency
         self.frequency_loss = settings.setup() if settings.active else None
         if self.config.strategy == "mcmc":  # nerfstudio main's mapping of Splatfacto's fields
-            strategy = MCMCStrategy(cap_max=self.config.max_gs_num, noise_lr=self.config.noise_lr,
-                                    refine_start_iter=self.config.warmup_length,
-                                    refine_stop_iter=self.config.stop_split_at, refine_every=self.config.refine_every,
-                                    min_opacity=self.config.cull_alpha_thresh)
+            strategy = splatfacto_mcmc(self.config, self.config.warmup_length, self.config.stop_split_at,
+                                       self.config.refine_every)
             strategy.check_initial_count(self.num_points)
             self.strategy, self.strategy_state = strategy, strategy.initialize_state()
 
@@ -212,12 +210,8 @@ class KCSplatfactoModel(SplatfactoModel):
         main's ``mcmc_opacity_reg`` and ``mcmc_scale_reg``."""
         loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
         if self.config.strategy == "mcmc":
-            if self.config.mcmc_opacity_reg > 0:
-                loss_dict["mcmc_opacity_reg"] = (self.config.mcmc_opacity_reg
-                                                 * torch.sigmoid(self.gauss_params["opacities"]).abs().mean())
-            if self.config.mcmc_scale_reg > 0:
-                loss_dict["mcmc_scale_reg"] = (self.config.mcmc_scale_reg
-                                               * torch.exp(self.gauss_params["scales"]).abs().mean())
+            loss_dict.update(mcmc_regularization(self.config, self.gauss_params["opacities"],
+                                                 self.gauss_params["scales"]))
         if self.frequency_loss is None:
             return loss_dict
         gt_img = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
@@ -230,10 +224,8 @@ class KCSplatfactoModel(SplatfactoModel):
     def wavelet_target_key(self, batch: Dict[str, Any]) -> Optional[tuple]:
         """(training image, resolution): where the frequency loss caches the ground truth's target, when the
         composited ground truth is the same at every visit (RGB, or RGBA over a fixed background); else None."""
-        fixed = batch["image"].shape[-1] == 3 or not (self.training and self.config.background_color == "random")
-        if not fixed or "image_idx" not in batch:
-            return None
-        return int(batch["image_idx"]), self._get_downscale_factor()
+        return target_key(batch, self._get_downscale_factor(),
+                          self.training and self.config.background_color == "random")
 
     # ----------------------------------------------------------------------------------------------- metrics
     def get_image_metrics_and_images(self, outputs, batch):
