@@ -109,15 +109,6 @@ def oracle_cbc(pred: np.ndarray, gt: np.ndarray | None = None, correlation: bool
     return float(np.abs(lp - per_channel(lambda x: oracle_l_cov(x, correlation), gt)).mean())
 
 
-@pytest.fixture
-def heavy_tailed_pair():
-    rng = np.random.default_rng(7)
-    # Student-t noise: heavy tails in every subband (kurtosis well above 0)
-    pred = rng.standard_t(df=4, size=(2, 3, 64, 48)) * 0.1 + 0.5
-    gt = rng.standard_t(df=6, size=(2, 3, 64, 48)) * 0.1 + 0.5
-    return pred, gt
-
-
 def test_level_weights():
     assert level_weights(3, "paper") == [2.0, 4.0, 8.0]
     assert level_weights(3, "fine") == [8.0, 4.0, 2.0]

@@ -42,17 +42,9 @@ def oracle_terms(pred: np.ndarray, gt: np.ndarray, skip: int) -> tuple[float, fl
     return float(wavelet), float(np.mean(kc)), float(np.mean(cbc))
 
 
-@pytest.fixture
-def pair():
-    rng = np.random.default_rng(11)
-    pred = rng.standard_t(df=4, size=(2, 3, 64, 48)) * 0.1 + 0.5
-    gt = rng.standard_t(df=6, size=(2, 3, 64, 48)) * 0.1 + 0.5
-    return pred, gt
-
-
 @pytest.mark.parametrize("skip", [0, 1, 2])
-def test_a_left_out_finest_level_is_in_no_term_and_the_kept_levels_keep_their_weights(pair, skip):
-    pred, gt = pair
+def test_a_left_out_finest_level_is_in_no_term_and_the_kept_levels_keep_their_weights(heavy_tailed_pair, skip):
+    pred, gt = heavy_tailed_pair
     loss = FrequencyLoss(wavelet_weight=0.5, kc_weight=0.25, cbc_weight=2.0, skip_finest_levels=skip)
     out = loss(torch.tensor(pred), loss.prepare_target(torch.tensor(gt)))
     wavelet, kc, cbc = oracle_terms(pred, gt, skip)
@@ -61,11 +53,11 @@ def test_a_left_out_finest_level_is_in_no_term_and_the_kept_levels_keep_their_we
     np.testing.assert_allclose(float(out["cbc_loss"]), 2.0 * cbc, rtol=1e-6)
 
 
-def test_a_render_wrong_only_in_its_finest_detail_costs_nothing_once_that_level_is_left_out(pair):
+def test_a_render_wrong_only_in_its_finest_detail_costs_nothing_once_that_level_is_left_out(heavy_tailed_pair):
     """A render made by PyWavelets from the ground truth's coefficients with level 1's detail bands perturbed: the
     wavelet term that keeps level 1 sees the change, the one without it none (periodization: an orthogonal transform,
     so the coefficients round-trip exactly; symmetric extension's boundary coefficients do not)."""
-    _, gt = pair
+    _, gt = heavy_tailed_pair
     image = torch.tensor(gt[:1])
     rng = np.random.default_rng(0)
     render = image.clone()
@@ -82,8 +74,8 @@ def test_a_render_wrong_only_in_its_finest_detail_costs_nothing_once_that_level_
 
 
 @pytest.mark.parametrize("downscale, skipped", [(1, 2), (2, 1), (4, 0), (8, 0)])
-def test_a_warm_up_stage_leaves_out_one_level_fewer_per_halving(pair, downscale, skipped):
-    pred, gt = pair
+def test_a_warm_up_stage_leaves_out_one_level_fewer_per_halving(heavy_tailed_pair, downscale, skipped):
+    pred, gt = heavy_tailed_pair
     loss = FrequencyLoss(wavelet_weight=0.5, kc_weight=0.25, cbc_weight=2.0, skip_finest_levels=2)
     loss.downscale = downscale
     assert loss.skipped_levels == skipped
@@ -91,8 +83,8 @@ def test_a_warm_up_stage_leaves_out_one_level_fewer_per_halving(pair, downscale,
     np.testing.assert_allclose(float(out["wavelet_loss"]), 0.5 * oracle_terms(pred, gt, skipped)[0], rtol=1e-10)
 
 
-def test_a_target_prepared_at_another_stage_is_refused(pair):
-    pred, gt = pair
+def test_a_target_prepared_at_another_stage_is_refused(heavy_tailed_pair):
+    pred, gt = heavy_tailed_pair
     loss = FrequencyLoss(skip_finest_levels=1)
     target = loss.prepare_target(torch.tensor(gt))
     loss.downscale = 2  # now every level is compared: the target's bands lack level 1
@@ -100,8 +92,8 @@ def test_a_target_prepared_at_another_stage_is_refused(pair):
         loss(torch.tensor(pred), target)
 
 
-def test_the_fused_path_serves_only_where_every_level_is_compared(pair, monkeypatch):
-    pred, gt = pair
+def test_the_fused_path_serves_only_where_every_level_is_compared(heavy_tailed_pair, monkeypatch):
+    pred, gt = heavy_tailed_pair
     calls = []
     original = fused.FusedFrequencyTerms.apply
     monkeypatch.setattr(fused.FusedFrequencyTerms, "apply", lambda *args: calls.append(1) or original(*args))
