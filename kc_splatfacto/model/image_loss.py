@@ -92,7 +92,8 @@ class ImageLoss:
         if frequency is not None:
             if not frequency.takes_fused_path(channels_first(render)):
                 return None
-            prepared = frequency.fused_target(render.detach().permute(2, 0, 1), frequency.target(channels_first(gt), key))
+            prepared = frequency.fused_target(render.detach().permute(2, 0, 1),
+                                              frequency.target(channels_first(gt), key))
             if prepared is None:
                 return None
             plan, slots, weights = prepared

@@ -639,7 +639,8 @@ class SplatfactoModel(torch.nn.Module):
         ``kurtosis_render`` / ``kurtosis_gt``: per detail band (finest level first, H V D), channel-averaged."""
         pred_img, gt_img, mask = self._masked_pair(outputs, batch)
         metrics: dict[str, Any] = {
-            "psnr": float(psnr(channels_first(pred_img), channels_first(gt_img), mask=None if mask is None else channels_first(mask))),
+            "psnr": float(psnr(channels_first(pred_img), channels_first(gt_img),
+                               mask=None if mask is None else channels_first(mask))),
             "gaussian_count": self.num_points,
         }
         if with_kurtosis:
@@ -675,5 +676,6 @@ class SplatfactoModel(torch.nn.Module):
                 self._kurtosis_probe = self.frequency_loss or self.config.frequency.setup()
                 self._kurtosis_probe.warn_dropped_levels = False
             with torch.no_grad():
-                image = self._kurtosis_probe.bands(channels_first(image.detach().float()), covariance=False, every_level=True)
+                image = self._kurtosis_probe.bands(channels_first(image.detach().float()), covariance=False,
+                                                   every_level=True)
         return mean_band_kurtosis(image)
