@@ -14,8 +14,9 @@ The numbers equal the level-by-level path's (:mod:`._frequency_autograd`, itself
 float rounding. Where the two split the gradient of a maximum differently (ties among the bands' kurtosis: this
 path gives it to the first band, autograd's ``amax`` shares it) both are subgradients of the same loss.
 
-Used for the supervised kurtosis and covariance terms (the paper's settings); the unsupervised and correlation
-variants take the level-by-level path.
+Used for the supervised kurtosis and covariance terms (the paper's settings): the frequency loss's table of terms
+(``frequency.TERMS``) says which settings each term is computed here for; the others (the unsupervised and
+correlation variants, the terms without a kernel here) run level by level beside these.
 """
 
 from __future__ import annotations
@@ -324,6 +325,11 @@ def _present(value: Tensor | None) -> Tensor:
     if value is None:  # a caller bug: the statistics a term needs are computed whenever its weight is non-zero
         raise RuntimeError("a statistic the fused frequency terms need was not computed")
     return value
+
+
+OUTPUTS = ("wavelet_loss", "kc_loss", "cbc_loss")
+"""the terms :class:`FusedFrequencyTerms` returns, in order, by their names in ``frequency.TERMS``: a term of the table
+marked fused must be one of them"""
 
 
 class FusedFrequencyTerms(torch.autograd.Function):

@@ -475,7 +475,9 @@ class FrequencyTerm:
     """One term of :class:`FrequencyLoss`: its name in a loss dictionary, the :class:`FrequencyLossConfig` field that
     holds its weight, the function it is of the render's and the ground truth's bands and the settings, the band
     statistics that function reads (``"kurtosis"``, ``"covariance"``: computed only when an active term needs them),
-    and which settings the fused torch path computes it for (None: never; then the loss runs level by level)."""
+    and for which settings the fused Function (``_fused_frequency``, the torch path a GPU runs) computes it: None
+    where it has no kernel there (the term then runs level by level, the fused terms beside it stay fused; a term
+    marked fused must be one of ``_fused_frequency.OUTPUTS``, :func:`check_terms`)."""
 
     name: str
     weight_field: str
@@ -498,6 +500,17 @@ TERMS: tuple[FrequencyTerm, ...] = (
 the bands); "is any term active", "all off" and the weight names follow from this table."""
 WEIGHTS = tuple(term.weight_field for term in TERMS)
 """the weight fields of :data:`TERMS`, in order"""
+
+
+def check_terms(terms: tuple[FrequencyTerm, ...]) -> None:
+    """Raises ValueError where a term is marked fused (``fused`` not None) but the fused Function does not compute it:
+    its output would otherwise be missing from the loss, silently."""
+    for term in terms:
+        if term.fused is not None and term.name not in fused.OUTPUTS:
+            raise ValueError(f"the frequency term '{term.name}' is marked fused, but the fused Function computes only "
+                             f"{', '.join(fused.OUTPUTS)} (losses/_fused_frequency.py): give its FrequencyTerm "
+                             "fused=None (it then runs level by level, the fused terms beside it stay fused) or "
+                             "add it to FusedFrequencyTerms")
 
 
 # --------------------------------------------------------------------------------------------------- module
@@ -540,6 +553,7 @@ class FrequencyLoss(nn.Module):
         self.downscale = 1
         self._l1_weights: dict[Any, Tensor] = {}
         self._targets: dict[Hashable, WaveletBands] = {}  # the ground truths' targets by key (compare, target)
+        check_terms(TERMS)
 
     @property
     def active(self) -> bool:
@@ -588,10 +602,18 @@ class FrequencyLoss(nn.Module):
             )
 
     def forward(self, pred: Tensor, target: WaveletBands) -> dict[str, Tensor]:
-        c = self.config
-        active = c.active_terms()
-        if not active:
+        if not self.config.active:
             return {}
+        return self._stage(pred, target).losses(pred)
+
+    def stage(self, pred: Tensor, gt: Tensor, key: Hashable | None = None) -> FrequencyStage:
+        """The active terms of pred [B, C, H, W] against gt [B, C, H, W] (its target cached under ``key``, as
+        :meth:`target`), split for a training step: :class:`FrequencyStage`. What an image loss that captures the
+        fused terms in a CUDA graph calls (``model/image_loss.py``); ``stage(...).losses(pred)`` is :meth:`forward`.
+        Raises as :meth:`forward` does on a bad ``pred``."""
+        return self._stage(pred, self.target(gt, key))
+
+    def _stage(self, pred: Tensor, target: WaveletBands) -> FrequencyStage:
         if not isinstance(target, WaveletBands):
             raise TypeError(f"target must be WaveletBands (FrequencyLoss.prepare_target(gt)), got {type(target).__name__}")
         _check_image(pred, "pred", finite=self.check_finite)
@@ -599,13 +621,35 @@ class FrequencyLoss(nn.Module):
             raise ValueError(
                 f"pred {tuple(pred.shape)} and target {tuple(target.image_shape)} must have the same [B, C, H, W]"
             )
-        if self._takes_fused_path(pred, active):
-            fused_losses = self._fused_forward(pred, target)
-            if fused_losses is not None:
-                return fused_losses
-        needs = {statistic for term, _ in active for statistic in term.statistics}
-        bands = self.bands(pred, kurtosis="kurtosis" in needs, covariance="covariance" in needs, check_finite=False)
-        return {term.name: weight * term.function(bands, target, c) for term, weight in active}
+        fused_terms, level_terms = self.split_terms(pred)
+        names = tuple(term.name for term, _ in fused_terms)
+        setup = self._fused_setup(pred, target, names) if fused_terms else None
+        if setup is None:  # no fused term, or an image too small for any level: the level-by-level zero loss
+            return FrequencyStage(self, target, (), tuple(fused_terms) + tuple(level_terms), ())
+        plan, slots, l1_weights = setup
+        present = tuple(name in names for name in fused.OUTPUTS)  # which of the slot target's tensors are read
+        tensors = tuple(t for t, here in zip((slots.weighted_bands, slots.kurtosis, slots.l_cov), present)
+                        if here and t is not None)
+        weights = {term.name: weight for term, weight in fused_terms}
+        return FrequencyStage(self, target, names, tuple(level_terms), tensors, plan, l1_weights, present,
+                              (weights.get("kc_loss", 0.0), weights.get("cbc_loss", 0.0)))
+
+    def split_terms(self, pred: Tensor) -> tuple[list[tuple[FrequencyTerm, float]], list[tuple[FrequencyTerm, float]]]:
+        """The active terms (with their weights) as (those the fused Function computes for ``pred``, those computed
+        level by level). A term is fused where its ``fused`` says so for these settings, off the compiled CPU kernels
+        and with every level compared (the fused Function has no notion of a left-out finest level)."""
+        check_terms(TERMS)
+        active = self.config.active_terms()
+        if not (self.fused and not backend.compiled(pred) and self.skipped_levels == 0):
+            return [], active
+        takes = [term.fused is not None and term.fused(self.config) for term, _ in active]
+        return ([pair for pair, here in zip(active, takes) if here],
+                [pair for pair, here in zip(active, takes) if not here])
+
+    def takes_fused_path(self, pred: Tensor) -> bool:
+        """Whether :meth:`forward` computes every active term of ``pred`` with the fused Function."""
+        fused_terms, level_terms = self.split_terms(pred)
+        return bool(fused_terms) and not level_terms
 
     # ------------------------------------------------------------------------------------------- one call per image
     def compare(self, render: Tensor, gt: Tensor, *, background: Tensor | None = None, mask: Tensor | None = None,
@@ -657,66 +701,36 @@ class FrequencyLoss(nn.Module):
         """The target cached under ``key`` by :meth:`compare` / :meth:`target`, or None (never computes one)."""
         return None if key is None else self._targets.get(key)
 
-    def _takes_fused_path(self, pred: Tensor, active: list[tuple[FrequencyTerm, float]]) -> bool:
-        """Off the compiled CPU kernels, the fused Function serves every active term it computes (TERMS' ``fused``)
-        when every level is compared (it has no notion of a left-out finest level: the level-by-level path serves
-        then)."""
-        return (self.fused and not backend.compiled(pred) and self.skipped_levels == 0
-                and all(term.fused is not None and term.fused(self.config) for term, _ in active))
-
-    def _fused_forward(self, pred: Tensor, target: WaveletBands) -> dict[str, Tensor] | None:
-        """The active terms through :class:`~._fused_frequency.FusedFrequencyTerms`, or None when the image supports
-        no level (the level-by-level path's zero loss then applies)."""
-        inputs = self.fused_inputs(pred, target)
-        if inputs is None:
-            return None
-        return self.fused_terms(*inputs)
-
-    def fused_terms(self, image: Tensor, plan: fused.BandPlan, slots: fused.SlotTarget,
-                    weights: Tensor | None) -> dict[str, Tensor]:
-        """The active terms of image [N, H, W] against a slot target (:meth:`fused_inputs`): tensors in, tensors
-        out, nothing read back to the host, so a CUDA graph can capture it."""
-        c = self.config
-        wavelet, kc, cbc = fused.FusedFrequencyTerms.apply(image, plan, slots, weights, c.kc_weight, c.cbc_weight)
-        terms = {"wavelet_loss": wavelet, "kc_loss": kc, "cbc_loss": cbc}
-        return {name: terms[name] for name, weight in zip(terms, (c.wavelet_weight, c.kc_weight, c.cbc_weight))
-                if weight > 0}
-
-    def fused_inputs(self, pred: Tensor, target: WaveletBands
-                     ) -> tuple[Tensor, fused.BandPlan, fused.SlotTarget, Tensor | None] | None:
-        """(image [N, H, W], plan, the target's slot form, the L1 weights) for :meth:`fused_terms`, built and cached
-        on first use per image size and target; None when the image supports no DWT level."""
-        image = fused.as_planes(pred.to(_compute_dtype(pred.dtype)))
-        prepared = self.fused_target(image, target)
-        return None if prepared is None else (image, *prepared)
-
-    def fused_target(self, image: Tensor, target: WaveletBands
+    def _fused_setup(self, pred: Tensor, target: WaveletBands, names: tuple[str, ...]
                      ) -> tuple[fused.BandPlan, fused.SlotTarget, Tensor | None] | None:
-        """(plan, the target's slot form, the L1 weights) for an image [N, H, W] like ``image`` (its size, dtype,
-        device): built on first use, then cached; None when the image supports no DWT level."""
+        """(plan, the target's slot form, the L1 weights) of the fused terms ``names`` for an image like pred [B, C,
+        H, W] (its size, device and compute dtype): built on first use, then cached; None when the image supports no
+        DWT level."""
         c = self.config
-        plan = fused.plan_for((image.shape[-2], image.shape[-1]), c.wave, c.wavelet_mode, c.wavelet_levels, image)
+        dtype, device = _compute_dtype(pred.dtype), pred.device
+        batch, channels, height, width = pred.shape
+        planes = batch * channels
+        plan = fused.plan_for((height, width), c.wave, c.wavelet_mode, c.wavelet_levels, pred.new_empty((), dtype=dtype))
         if plan is None:
             return None
-        settings = ("wave", "wavelet_levels", "wavelet_mode") + (("cbc_correlation",) if c.cbc_weight > 0 else ())
+        settings = ("wave", "wavelet_levels", "wavelet_mode") + (("cbc_correlation",) if "cbc_loss" in names else ())
         if target.skipped_levels or any(getattr(target, name) != getattr(c, name) for name in settings):
             raise ValueError("the target's bands were computed with other settings than this loss's: prepare the "
                              "target with the loss's own settings (FrequencyLoss.prepare_target)")
-        if target.device != image.device or target.dtype != image.dtype:
-            target = target.to(device=image.device, dtype=image.dtype)
-        planes = image.shape[0]
+        if target.device != device or target.dtype != dtype:
+            target = target.to(device=device, dtype=dtype)
         weights = None
-        if c.wavelet_weight > 0:
+        if "wavelet_loss" in names:
             key = (id(plan), planes)
             weights = self._l1_weights.get(key)
             if weights is None:
                 per_level = level_weights(plan.levels, c.wavelet_weighting)
                 weights = self._l1_weights[key] = fused.l1_slot_weights(plan, per_level, c.wavelet_weight, planes)
-        slot_key = (id(plan), c.wavelet_weight, c.wavelet_weighting)
+        slot_key = (id(plan), weights is not None, c.wavelet_weight, c.wavelet_weighting)
         slots = target.slot_targets.get(slot_key)
         if slots is None:
             if target.image is not None:
-                gt = fused.as_planes(target.image.to(image.dtype))
+                gt = fused.as_planes(target.image.to(dtype))
                 slots = fused.slot_target_of_image(gt, plan, weights)
             else:
                 slots = fused.slot_target(target.coeffs.details, target.kurtosis, target.spread, target.l_cov, plan,
@@ -724,9 +738,71 @@ class FrequencyLoss(nn.Module):
             target.slot_targets[slot_key] = slots
         return plan, slots, weights
 
-    def takes_fused_path(self, pred: Tensor) -> bool:
-        """Whether :meth:`forward` computes the active terms of ``pred`` with the fused Function."""
-        return self._takes_fused_path(pred, self.config.active_terms())
+
+@dataclass(frozen=True)
+class FrequencyStage:
+    """The active terms of one render, split for a training step (:meth:`FrequencyLoss.stage`).
+
+    The terms with a fused kernel (their :data:`TERMS` entry's ``fused``) are one function of tensors only,
+    ``fused(pred, *tensors)``: the render and the ground truth's side in, the terms out, nothing read back to the
+    host, so a CUDA graph can capture it. The rest run level by level, ``level_by_level(pred)``, beside it.
+    ``combine(fused_outputs, pred)`` joins the two in the table's order; ``losses(pred)`` is the whole
+    (:meth:`FrequencyLoss.forward`).
+
+    fused_names: the fused terms, in the order ``fused`` returns them (empty on the compiled CPU kernels);
+    level_terms: (term, weight) of the others; tensors: the ground truth's side of the fused terms (its slot form);
+    graph_key: what a capture of ``fused`` is specific to (the image size's plan, the tensors' shapes, the terms).
+    """
+
+    loss: FrequencyLoss
+    target: WaveletBands
+    fused_names: tuple[str, ...]
+    level_terms: tuple[tuple[FrequencyTerm, float], ...]
+    tensors: tuple[Tensor, ...]
+    plan: fused.BandPlan | None = None
+    l1_weights: Tensor | None = None
+    present: tuple[bool, ...] = ()
+    """which of the slot target's (weighted bands, kurtosis, L_cov) ``tensors`` holds"""
+    term_weights: tuple[float, float] = (0.0, 0.0)
+    """(kc, cbc) weights of the fused Function (0: the term is not fused)"""
+
+    @property
+    def graph_key(self) -> Hashable:
+        return id(self.plan), tuple(t.shape for t in self.tensors), self.fused_names
+
+    def fused(self, pred: Tensor, *tensors: Tensor) -> tuple[Tensor, ...]:
+        """The fused terms of pred [B, C, H, W] against ``tensors`` (this stage's :attr:`tensors`, or a graph's
+        copies of them), in :attr:`fused_names`' order."""
+        if not self.fused_names or self.plan is None:
+            return ()
+        given = iter(tensors)
+        slots = fused.SlotTarget(*(next(given) if here else None for here in self.present))
+        image = fused.as_planes(pred.to(_compute_dtype(pred.dtype)))
+        outputs = fused.FusedFrequencyTerms.apply(image, self.plan, slots, self.l1_weights, *self.term_weights)
+        by_name = dict(zip(fused.OUTPUTS, outputs))
+        return tuple(by_name[name] for name in self.fused_names)
+
+    def level_by_level(self, pred: Tensor) -> dict[str, Tensor]:
+        """The other active terms of pred [B, C, H, W]: one :meth:`FrequencyLoss.bands` with the statistics they read,
+        then each term's function."""
+        if not self.level_terms:
+            return {}
+        needs = {statistic for term, _ in self.level_terms for statistic in term.statistics}
+        bands = self.loss.bands(pred, kurtosis="kurtosis" in needs, covariance="covariance" in needs,
+                                check_finite=False)
+        c = self.loss.config
+        return {term.name: weight * term.function(bands, self.target, c) for term, weight in self.level_terms}
+
+    def combine(self, fused_outputs: tuple[Tensor, ...] | list[Tensor], pred: Tensor) -> dict[str, Tensor]:
+        """The fused terms' outputs (from :meth:`fused` or its graph) with the level-by-level terms of pred, in the
+        table's order."""
+        terms = dict(zip(self.fused_names, fused_outputs))
+        terms.update(self.level_by_level(pred))
+        return {term.name: terms[term.name] for term in TERMS if term.name in terms}
+
+    def losses(self, pred: Tensor) -> dict[str, Tensor]:
+        """Every active term of pred [B, C, H, W], by name, in the table's order."""
+        return self.combine(self.fused(pred, *self.tensors), pred)
 
 
 def target_key(batch: dict[str, Any], downscale: int, random_background: bool) -> tuple[int, int] | None:

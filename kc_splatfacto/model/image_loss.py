@@ -5,7 +5,8 @@ On CUDA a training step is bound by kernel launches, and this region (L1, D-SSIM
 their backwards) is ~150 of them. :class:`ImageLoss` captures it once per training resolution with
 ``torch.cuda.make_graphed_callables`` and replays it: a copy of the inputs and one graph launch each way. What the
 graph reads is passed in as tensors (the render, the ground truth, the ground truth's cached wavelet target), so one
-graph serves every training image of a size. The first replay of each size is checked against the eager
+graph serves every training image of a size. The graph holds the frequency terms with a fused kernel
+(:meth:`FrequencyLoss.stage`); a term without one runs eagerly beside the replay. The first replay of each size is checked against the eager
 computation, values and gradient; a failed capture or a mismatch turns the graphs off for the run with one warning,
 and the eager loss goes on. Elsewhere (the CPU) the loss is always eager.
 """
@@ -19,8 +20,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from kc_splatfacto.losses import _fused_frequency as fused
-from kc_splatfacto.losses.frequency import FrequencyLoss
+from kc_splatfacto.losses.frequency import FrequencyLoss, FrequencyStage
 from kc_splatfacto.losses.layout import channels_first
 from kc_splatfacto.losses.photometric import dssim, l1
 
@@ -69,10 +69,10 @@ class ImageLoss:
         pred, target = channels_first(render), channels_first(gt)
         lam = self.ssim_lambda
         losses = {"main_loss": (1 - lam) * l1(pred, target) + lam * dssim(pred, target)}
-        if self.frequency_loss is not None:
+        if self.frequency_loss is not None and self.frequency_loss.active:
             # the same view of the render as the main loss's: the gradients of all terms meet in one node, summed in
             # one order (a second view would sum them in another: other float rounding, another whole-run hash)
-            losses.update(self.frequency_loss(pred, self.frequency_loss.target(target, key)))
+            losses.update(self.frequency_loss.stage(pred, target, key).losses(pred))
         return losses
 
     # ----------------------------------------------------------------------------------------------- graphs
@@ -81,66 +81,58 @@ class ImageLoss:
                 and gt.dtype == render.dtype and torch.is_grad_enabled())
 
     def _graphed(self, render: Tensor, gt: Tensor, key: Hashable | None) -> dict[str, Tensor] | None:
-        """The terms through the size's graph (captured and checked on first use), or None where the eager path
-        must serve (the frequency loss off its fused path, an image too small for a DWT level, graphs turned off)."""
+        """The terms through the size's graph (captured and checked on first use): the main loss and the frequency
+        terms with a fused kernel in the graph, the other frequency terms (the table's unfused ones, or all of them
+        where the fused path does not serve) eagerly beside it; None where graphs have been turned off."""
         frequency = self.frequency_loss
-        names = ["main_loss"]
-        plan: fused.BandPlan | None = None
-        weights: Tensor | None = None
-        present: list[bool] = []  # which of the slot target's tensors (weighted bands, kurtosis, L_cov) exist
-        slot_tensors: tuple[Tensor, ...] = ()
-        if frequency is not None:
-            if not frequency.takes_fused_path(channels_first(render)):
-                return None
-            prepared = frequency.fused_target(render.detach().permute(2, 0, 1),
-                                              frequency.target(channels_first(gt), key))
-            if prepared is None:
-                return None
-            plan, slots, weights = prepared
-            fields = (slots.weighted_bands, slots.kurtosis, slots.l_cov)
-            present = [t is not None for t in fields]
-            slot_tensors = tuple(t for t in fields if t is not None)
-            names += [term.name for term, _ in frequency.config.active_terms()]
-        graph_key = (tuple(render.shape), id(plan), tuple(t.shape for t in slot_tensors))
+        stage: FrequencyStage | None = None
+        if frequency is not None and frequency.active:
+            stage = frequency.stage(channels_first(render), channels_first(gt), key)
+        tensors = () if stage is None else stage.tensors
+        names = ("main_loss", *(() if stage is None else stage.fused_names))
+        graph_key = (tuple(render.shape), None if stage is None else stage.graph_key)
         graph = self._graphs.get(graph_key)
         if graph is None:
-            region = self._region(plan, weights, present)
-            sample = (render.detach().clone().requires_grad_(True), gt.detach().clone(),
-                      *(t.clone() for t in slot_tensors))
+            region = self._region(stage)
+            sample = (render.detach().clone().requires_grad_(True), gt.detach().clone(), *(t.clone() for t in tensors))
             try:
                 graph = self._graphs[graph_key] = self._capture(region, sample)
             except Exception as error:  # noqa: BLE001  (any failure to capture leaves the eager loss in charge)
                 self._turn_off(f"capturing the image loss at {tuple(render.shape[:2])} failed ({error})")
                 return None
-        if graph_key not in self._checked and not self._agrees_with_eager(graph, render, gt, key, slot_tensors):
+        if graph_key not in self._checked and not self._agrees_with_eager(graph, render, gt, key, tensors, names):
             return None
         self._checked.add(graph_key)
-        return dict(zip(names, graph(render, gt, *slot_tensors)))
+        outputs = graph(render, gt, *tensors)
+        losses = {"main_loss": outputs[0]}
+        if stage is not None:
+            losses.update(stage.combine(outputs[1:], channels_first(render)))
+        return losses
 
-    def _region(self, plan: fused.BandPlan | None, weights: Tensor | None, present: list[bool]) -> Callable[..., Any]:
-        """The captured function: (render, gt, *the slot target's tensors) -> (main_loss, *active frequency terms)."""
+    def _region(self, stage: FrequencyStage | None) -> Callable[..., Any]:
+        """The captured function: (render, gt, *the fused terms' ground-truth tensors) -> (main_loss, *the fused
+        terms). It reads only what every image of the graph's size shares (the stage's plan and weights)."""
         lam = self.ssim_lambda
-        frequency = self.frequency_loss
 
-        def region(render: Tensor, gt: Tensor, *slot_tensors: Tensor) -> tuple[Tensor, ...]:
+        def region(render: Tensor, gt: Tensor, *tensors: Tensor) -> tuple[Tensor, ...]:
             pred, target = channels_first(render), channels_first(gt)
             outputs = [(1 - lam) * l1(pred, target) + lam * dssim(pred, target)]
-            if frequency is not None and plan is not None:
-                given = iter(slot_tensors)
-                slots = fused.SlotTarget(*(next(given) if here else None for here in present))
-                outputs += list(frequency.fused_terms(fused.as_planes(pred), plan, slots, weights).values())
+            if stage is not None:
+                outputs += stage.fused(pred, *tensors)
             return tuple(outputs)
 
         return region
 
     def _agrees_with_eager(self, graph: Callable[..., Any], render: Tensor, gt: Tensor, key: Hashable | None,
-                           slot_tensors: tuple[Tensor, ...]) -> bool:
-        """One replay against the eager loss, values and gradient (the first use of each size; a host read)."""
+                           tensors: tuple[Tensor, ...], names: tuple[str, ...]) -> bool:
+        """One replay against the eager loss's same terms, values and gradient (the first use of each size; a host
+        read)."""
         probe = render.detach().clone().requires_grad_(True)
-        replayed = graph(probe, gt, *slot_tensors)
+        replayed = graph(probe, gt, *tensors)
         replayed_grad = torch.autograd.grad(torch.stack(list(replayed)).sum(), probe)[0]
         probe = render.detach().clone().requires_grad_(True)
-        expected = list(self.eager(probe, gt, key).values())
+        eager = self.eager(probe, gt, key)
+        expected = [eager[name] for name in names]
         expected_grad = torch.autograd.grad(torch.stack(expected).sum(), probe)[0]
         values_agree = torch.allclose(torch.stack(list(replayed)), torch.stack(expected), rtol=GRAPH_CHECK_RTOL,
                                       atol=1e-7)

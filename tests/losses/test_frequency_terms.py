@@ -7,10 +7,14 @@ import dataclasses
 
 import numpy as np
 import pytest
+import pywt
 import torch
 
-from kc_splatfacto.losses import FrequencyLoss, FrequencyLossConfig
-from kc_splatfacto.losses.frequency import TERMS, WEIGHTS
+from kc_splatfacto import backend
+from kc_splatfacto.losses import FrequencyLoss, FrequencyLossConfig, frequency
+from kc_splatfacto.losses import _fused_frequency as fused
+from kc_splatfacto.losses.frequency import TERMS, WEIGHTS, FrequencyTerm
+from kc_splatfacto.settings import real, setting
 
 
 def test_the_table_names_every_weight_field_and_decides_what_is_active():
@@ -24,6 +28,62 @@ def test_the_table_names_every_weight_field_and_decides_what_is_active():
         pred, gt = torch.rand(1, 3, 40, 40), torch.rand(1, 3, 40, 40)
         loss = only.setup()
         assert set(loss(pred, loss.prepare_target(gt))) == {term.name}
+
+
+@dataclasses.dataclass
+class WithEnergy(FrequencyLossConfig):
+    """The paper's settings and a new term's weight, added as docs/architecture.md's recipe says."""
+
+    energy_weight: float = setting(0.5, real(0.0))
+    """weight of the squared difference of the finest detail bands (a term of the tests, with no fused kernel)"""
+
+
+def finest_energy(pred, gt, config) -> torch.Tensor:
+    """mean (c^1(pred) - c^1(gt))^2 over the finest level's three detail bands."""
+    return (pred.coeffs.details[0] - gt.coeffs.details[0]).square().mean()
+
+
+def add_energy_term(monkeypatch, fused_kernel: bool) -> None:
+    """``energy_loss`` appended to the table (marked fused, or not)."""
+    term = FrequencyTerm("energy_loss", "energy_weight", finest_energy, fused=(lambda c: True) if fused_kernel else None)
+    monkeypatch.setattr(frequency, "TERMS", (*TERMS, term))
+
+
+def energy_oracle(pred: np.ndarray, gt: np.ndarray, weight: float) -> float:
+    """The new term by PyWavelets: [B, C, H, W] float64 images, db3, symmetric, 3 levels."""
+    differences = []
+    for p, g in zip(pred.reshape(-1, *pred.shape[-2:]), gt.reshape(-1, *gt.shape[-2:])):
+        finest_p, finest_g = (pywt.wavedec2(x, "db3", mode="symmetric", level=3)[-1] for x in (p, g))
+        differences += [bp - bg for bp, bg in zip(finest_p, finest_g)]
+    return weight * float(np.mean(np.square(differences)))
+
+
+@pytest.mark.parametrize("fused_path", [True, False])
+def test_a_new_term_without_a_fused_kernel_runs_on_the_fast_and_the_slow_path(monkeypatch, fused_path):
+    add_energy_term(monkeypatch, fused_kernel=False)
+    calls = []
+    original = fused.FusedFrequencyTerms.apply
+    monkeypatch.setattr(fused.FusedFrequencyTerms, "apply", lambda *args: calls.append(1) or original(*args))
+    g = torch.Generator().manual_seed(6)
+    pred, gt = (torch.rand(1, 3, 40, 52, generator=g, dtype=torch.float64) for _ in range(2))
+    loss = FrequencyLoss(WithEnergy())
+    loss.fused = fused_path
+    with backend.torch_reference():  # the torch path a GPU runs: the paper's three terms fused there
+        terms = loss(pred, loss.prepare_target(gt))
+    assert list(terms) == ["wavelet_loss", "kc_loss", "cbc_loss", "energy_loss"]
+    assert len(calls) == int(fused_path)  # the three stay fused beside the new term
+    np.testing.assert_allclose(float(terms["energy_loss"]), energy_oracle(pred.numpy(), gt.numpy(), 0.5), rtol=1e-10)
+    paper = FrequencyLoss(WithEnergy(energy_weight=0.0))  # the paper's terms alone, level by level
+    paper.fused = False
+    expected = paper(pred, paper.prepare_target(gt))
+    for name in expected:
+        torch.testing.assert_close(terms[name], expected[name], rtol=1e-11, atol=0)
+
+
+def test_a_new_term_marked_fused_without_a_kernel_is_refused_not_dropped(monkeypatch):
+    add_energy_term(monkeypatch, fused_kernel=True)
+    with pytest.raises(ValueError, match="'energy_loss' is marked fused.*fused=None"):
+        FrequencyLoss(WithEnergy())
 
 
 def _inputs(batch: int | None = None, seed: int = 0):

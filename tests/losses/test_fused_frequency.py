@@ -119,16 +119,37 @@ def test_the_model_layout_and_a_half_precision_render_take_the_fused_path(monkey
         torch.testing.assert_close(half[key], reference[key], rtol=5e-2, atol=0)  # the render rounded to float16
 
 
-def test_the_compiled_cpu_path_and_the_other_variants_keep_the_level_by_level_path(monkeypatch):
+def test_the_compiled_cpu_path_never_takes_the_fused_function(monkeypatch):
     calls = []
     monkeypatch.setattr(fused.FusedFrequencyTerms, "apply", lambda *args: calls.append(1))
     pred, gt = torch.rand(1, 3, 40, 40), torch.rand(1, 3, 40, 40)
-    FrequencyLoss()(pred, FrequencyLoss().prepare_target(gt))  # the CPU's compiled kernels
-    with backend.torch_reference():
-        for settings in ({"kc_supervised": False}, {"cbc_supervised": False}, {"cbc_correlation": True}):
-            loss = FrequencyLoss(**settings)
-            loss(pred, loss.prepare_target(gt))
+    loss = FrequencyLoss()
+    assert set(loss(pred, loss.prepare_target(gt))) == set(TERMS)  # the CPU's compiled kernels
     assert calls == []
+
+
+@pytest.mark.parametrize("settings,unfused", [({"kc_supervised": False}, "kc_loss"),
+                                              ({"cbc_supervised": False}, "cbc_loss"),
+                                              ({"cbc_correlation": True}, "cbc_loss")])
+def test_a_variant_without_a_fused_kernel_runs_level_by_level_beside_the_fused_terms(settings, unfused, monkeypatch):
+    calls = []
+    original = fused.FusedFrequencyTerms.apply
+    monkeypatch.setattr(fused.FusedFrequencyTerms, "apply", lambda *args: calls.append(args) or original(*args))
+    g = torch.Generator().manual_seed(4)
+    gt = torch.rand(2, 3, 40, 56, generator=g, dtype=torch.float64) ** 3
+    pred = torch.rand(2, 3, 40, 56, generator=g, dtype=torch.float64) ** 2
+    loss = FrequencyLoss(wavelet_weight=1.0, kc_weight=1.0, cbc_weight=1e3, **settings)
+    terms, grad = terms_and_grad(loss, pred, gt, fused_path=True)
+    assert len(calls) == 1 and not loss.takes_fused_path(pred)
+    _, _, _, l1_weights, kc_weight, cbc_weight = calls[0]
+    # the Function computes the other two terms (the L1 always: it has no variant), not this one
+    assert l1_weights is not None and (kc_weight == 0.0) == (unfused == "kc_loss")
+    assert (cbc_weight == 0.0) == (unfused == "cbc_loss")
+    reference, reference_grad = terms_and_grad(loss, pred, gt, fused_path=False)
+    assert list(terms) == list(reference) == list(TERMS)
+    for key in TERMS:
+        torch.testing.assert_close(terms[key], reference[key], rtol=1e-11, atol=0)
+    torch.testing.assert_close(grad, reference_grad, rtol=1e-9, atol=1e-12 * float(reference_grad.abs().max()))
 
 
 def scaled(image: torch.Tensor, factor: float) -> torch.Tensor:

@@ -11,8 +11,9 @@ import pytest
 import torch
 
 from kc_splatfacto import backend
-from kc_splatfacto.losses import FrequencyLossConfig
+from kc_splatfacto.losses import FrequencyLoss, FrequencyLossConfig
 from kc_splatfacto.model.image_loss import ImageLoss
+from tests.losses.test_frequency_terms import WithEnergy, add_energy_term
 
 
 class _OnAnyDevice(ImageLoss):
@@ -57,6 +58,33 @@ def test_the_replayed_region_equals_the_eager_loss_for_every_image_and_size(freq
                 torch.testing.assert_close(grad, expected_grad, rtol=1e-6, atol=1e-9)
     assert len(captured) == 2  # one capture per size, shared by its images
     assert graphed.cuda_graphs
+
+
+def test_a_term_without_a_fused_kernel_runs_eagerly_beside_the_graph_that_holds_the_rest(monkeypatch):
+    add_energy_term(monkeypatch, fused_kernel=False)
+    captured = []
+
+    def capture(region, sample):
+        captured.append(region)
+        return lambda *inputs: captured.append("replay") or region(*inputs)
+
+    graphed = _OnAnyDevice(0.2, FrequencyLoss(WithEnergy()), capture=capture)
+    eager = ImageLoss(0.2, FrequencyLoss(WithEnergy()), cuda_graphs=False)
+    with backend.torch_reference():
+        for image in range(2):
+            render, gt = _pair((48, 64), seed=image)
+            terms, grad = _terms_and_grad(graphed, render, gt, key=image)
+            expected, expected_grad = _terms_and_grad(eager, render, gt, key=image)
+            assert list(terms) == list(expected) == ["main_loss", "wavelet_loss", "kc_loss", "cbc_loss", "energy_loss"]
+            for name in expected:
+                torch.testing.assert_close(terms[name], expected[name], rtol=1e-6, atol=0)
+            torch.testing.assert_close(grad, expected_grad, rtol=1e-6, atol=1e-9)
+        region = captured[0]
+        render, gt = _pair((48, 64), seed=0)
+        slots = graphed.frequency_loss.stage(render.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None], key=0).tensors
+        # the graph holds the main loss and the three fused terms; the new one is not in it
+        assert len(region(render, gt, *slots)) == 4
+    assert graphed.cuda_graphs and captured.count("replay") >= 2
 
 
 def test_a_failed_capture_or_a_replay_that_disagrees_turns_the_graphs_off_with_one_warning():
