@@ -37,7 +37,8 @@ from bench_train import SHARED_DATA, TARGET_RATIO, make_config  # noqa: E402
 from host_syncs import count_ordinary_steps, source_of  # noqa: E402
 
 from kc_splatfacto.engine.metrics_log import MetricsWriter  # noqa: E402
-from kc_splatfacto.engine.trainer import PARAMETER_SCAN_EVERY, PHASES, Trainer  # noqa: E402
+from kc_splatfacto.engine.trainer import PHASES, Trainer  # noqa: E402
+from kc_splatfacto.engine.training_state import PARAMETER_SCAN_EVERY  # noqa: E402
 
 
 def gpu_config(method, args, out, iterations):

@@ -263,7 +263,8 @@ def test_the_bench_counts_ordinary_training_steps_only(tmp_path, monkeypatch):
     bench = importlib.util.module_from_spec(spec)
     monkeypatch.setattr(sys, "path", list(sys.path))
     spec.loader.exec_module(bench)
-    from kc_splatfacto.engine.trainer import PARAMETER_SCAN_EVERY, Trainer
+    from kc_splatfacto.engine.trainer import Trainer
+    from kc_splatfacto.engine.training_state import PARAMETER_SCAN_EVERY
 
     trainer = Trainer(tiny_demo_config("splatfacto", tmp_path, iterations=PARAMETER_SCAN_EVERY - 2))
     trainer.train()

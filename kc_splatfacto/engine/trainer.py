@@ -49,17 +49,12 @@ from kc_splatfacto.engine.run_guard import (
 )
 from kc_splatfacto.engine.scene_planning import apply_recorded_plan, plan_is_on, plan_scene
 from kc_splatfacto.engine.signals import install_stop_handlers, restore_handlers
-from kc_splatfacto.engine.training_state import StepHooks, StepResult, StepVerdict, TrainingState
+from kc_splatfacto.engine.training_state import BadStep, StepHooks, StepResult, TrainingState
 from kc_splatfacto.engine.validation import validate_config
 from kc_splatfacto.lpips import NETWORKS
 from kc_splatfacto.plan.scene_plan import apply_choices
 from kc_splatfacto.settings import drawn_from, each, integer, path_component, setting
 
-PARAMETER_SCAN_EVERY = 100
-"""steps between full scans of the parameters for NaN/inf (the rasterizer reports what it reads every step)"""
-VERDICTS_READ_EVERY = 100
-"""most steps whose device verdicts wait unread (``machine.step_verdict``; also read at each log, evaluation and
-checkpoint)"""
 PHASES = ("render", "losses", "backward", "optimizer", "density_control")
 
 
@@ -206,8 +201,6 @@ class Trainer:
         self._train_cpu_s = 0.0  # CPU seconds of the training steps (all threads): a clock other processes barely move
         self._side_s = 0.0  # logging work inside a step (gradient shares), kept out of train_s
         self._side_cpu_s = 0.0
-        self._bad_in_a_row = 0
-        self._unread_verdicts: list[tuple[int, StepVerdict]] = []  # (step, its device verdict) not yet read
         self._memory: MemoryGuard | None = None  # the run's memory budget (setup)
         self._t0 = self._lap_start = time.perf_counter()  # both restarted when train() begins
         self.callbacks: list[TrainingCallback] = []
@@ -355,7 +348,8 @@ class Trainer:
         }
 
     def save_checkpoint(self, step: int) -> Path:
-        self._read_verdicts(step)  # a bad step waiting unread is recorded before the state it left is saved
+        # a bad step waiting unread is recorded before the state it left is saved
+        self._record_bad_steps(self.state.read_verdicts(), now=step)
         path = save_checkpoint(
             self.run_dir / CHECKPOINT_DIR, step, self._checkpoint_payload(step), self.config.save_only_latest_checkpoint
         )
@@ -426,79 +420,44 @@ class Trainer:
         choice = self.config.machine.step_verdict
         return choice == "device" or (choice == "auto" and self.device.type == "cuda")
 
-    def _bad_step(self, step: int, reason: str, now: int | None = None) -> None:
-        """Record bad step ``step``; ``now``: the steps taken so far (later than ``step`` for a device verdict read
-        late), the state a divergence saves."""
-        self._bad_in_a_row += 1
-        self.writer.write({"kind": "bad_step", "step": step, "elapsed_s": self._elapsed(), "train_s": self._train_s,
-                           "reason": reason, "consecutive": self._bad_in_a_row})
-        warnings.warn(f"step {step}: {reason}; step skipped", RuntimeWarning, stacklevel=2)
-        if self._bad_in_a_row >= self.config.max_consecutive_bad_steps:
-            path = self.save_checkpoint(step if now is None else now)  # bad updates were never applied
-            raise TrainingDivergedError(
-                f"{self._bad_in_a_row} consecutive bad steps (last: {reason}) at step {step}: training stopped. "
-                f"The last good state is saved in {path}. Lower the loss weights or the learning rates "
-                f"(see docs/stability.md)."
-            )
-
-    def _take_step(self, step: int) -> StepResult:
-        """Step ``step`` (0-based) by the training state, on the next training view. Every ``PARAMETER_SCAN_EVERY``
-        steps a full scan first removes Gaussians whose values render finitely but are not (an infinite opacity
-        logit, ...); a step that removed any is skipped before its view is drawn (the view goes to the next step).
-        Those the rasterizer finds while it reads them are removed by the state's step."""
-        if step % PARAMETER_SCAN_EVERY == 0:
-            removed = self.state.remove_non_finite_gaussians()
-            self._lap("optimizer")
-            if removed:
-                return self.state.skip(f"non-finite parameters: {removed} Gaussians removed")
-        hooks = StepHooks(lap=self._lap, inspect_loss=functools.partial(self._log_gradient_shares, step + 1))
-        return self.state.step(step, self.datamanager.next_train(), hooks)
+    def _record_bad_steps(self, bad_steps: list[BadStep], now: int) -> None:
+        """Write out the bad steps the training state's verdicts gave (``now``: the steps taken so far, later than a
+        bad step whose device verdict was read late: the state a divergence saves); stop a run diverging."""
+        for bad in bad_steps:
+            self.writer.write({"kind": "bad_step", "step": bad.step, "elapsed_s": self._elapsed(),
+                               "train_s": self._train_s, "reason": bad.reason, "consecutive": bad.consecutive})
+            warnings.warn(f"step {bad.step}: {bad.reason}; step skipped", RuntimeWarning, stacklevel=2)
+            if bad.consecutive >= self.config.max_consecutive_bad_steps:
+                path = self.save_checkpoint(now)  # bad updates were never applied
+                raise TrainingDivergedError(
+                    f"{bad.consecutive} consecutive bad steps (last: {bad.reason}) at step {bad.step}: training "
+                    f"stopped. The last good state is saved in {path}. Lower the loss weights or the learning rates "
+                    f"(see docs/stability.md)."
+                )
 
     def _verdicts_due(self, taken: int) -> bool:
         """Whether the device verdicts waiting must be read after ``taken`` steps: before a log, an evaluation, a
-        checkpoint or a stop, or when ``VERDICTS_READ_EVERY`` wait."""
+        checkpoint or a stop (the training state reads them anyway when ``VERDICTS_READ_EVERY`` wait)."""
         cfg = self.config
         return (taken % cfg.logging.steps_per_log == 0 or self._should_eval(taken) or taken % cfg.steps_per_save == 0
-                or taken == cfg.max_num_iterations or self._stop_requested
-                or len(self._unread_verdicts) >= VERDICTS_READ_EVERY)
-
-    def _read_verdicts(self, taken: int) -> bool:
-        """Read the device verdicts waiting (one synchronisation), in step order: a bad one is recorded as the host
-        verdict records it (its update was never applied), a good one ends a run of bad steps. Returns whether the
-        last one read was good (True when none waited)."""
-        waiting, self._unread_verdicts = self._unread_verdicts, []
-        good = True
-        for step, verdict in waiting:
-            reason = verdict.reason()
-            good = reason is None
-            if reason is None:
-                self._bad_in_a_row = 0
-            else:
-                self._bad_step(step, reason, now=taken)
-        return good
+                or taken == cfg.max_num_iterations or self._stop_requested)
 
     def train_iteration(self, step: int) -> Mapping[str, float]:
-        """Take optimization step ``step`` (0-based). Returns the loss terms and ``loss`` as a :class:`StepLosses`
-        (read from the device only when asked; empty for a skipped step, and for a bad one whose device verdict is
-        read at once)."""
+        """Take optimization step ``step`` (0-based) on the next training view: the training state's step, its bad
+        steps written out. Returns the loss terms and ``loss`` as a :class:`StepLosses` (read from the device only
+        when asked; empty for a skipped step, and for a bad one whose device verdict is read at once)."""
         self._lap_start = time.perf_counter()
-        result = self._take_step(step)
+        hooks = StepHooks(lap=self._lap, inspect_loss=functools.partial(self._log_gradient_shares, step + 1))
+        result: StepResult = self.state.step(step, self.datamanager.next_train, hooks,
+                                             read_verdicts=self._verdicts_due(step + 1))
         if any(result.density.values()):  # empty on a skipped step
             self.writer.write({"kind": "densify", "step": step + 1, "elapsed_s": self._elapsed(),
                                "train_s": self._train_s, "gaussian_count": self.model.num_points, **result.density})
             self._check_memory(step + 1)
         self.phase_steps += 1
-        if result.verdict is not None:  # taken on the device, read later
-            self._unread_verdicts.append((step + 1, result.verdict))
-            if self._verdicts_due(step + 1) and not self._read_verdicts(step + 1):
-                return {}
-            self._last_outputs, self._last_batch = result.outputs, result.batch
-            return StepLosses(result.losses)
-        self._read_verdicts(step + 1)  # the host took this one: those before it come first
-        if result.skipped is not None:
-            self._bad_step(step + 1, result.skipped)
+        self._record_bad_steps(result.bad_steps, now=step + 1)
+        if result.known_bad:
             return {}
-        self._bad_in_a_row = 0
         self._last_outputs, self._last_batch = result.outputs, result.batch
         return StepLosses(result.losses)
 

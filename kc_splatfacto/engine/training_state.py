@@ -9,7 +9,8 @@ state. :meth:`TrainingState.step` takes one step on one batch:
 
 1. the model set to the step, the batch's camera rendered, the strategy's pre-backward hook on the render's ``info``;
 2. the loss terms (``model.get_loss_dict``), their sum, backward;
-3. the verdict: a non-finite render, loss or gradient, or a gradient that would overflow Adam, skips the update;
+3. the verdict: a non-finite render, loss or gradient, or a gradient that would overflow Adam, skips the update
+   (:class:`StepVerdicts` keeps every step's, in step order, and gives the bad ones as :class:`BadStep` records);
 4. the optimizers step and the schedules advance, before density control: MCMC's noise reads the means' rate of the
    next step, as gsplat's ``simple_trainer`` and nerfstudio pass it;
 5. density control on the render's ``info``, with the optimizers, whose state it rewrites when it adds, splits,
@@ -21,8 +22,10 @@ step, as under a gradient scaler), the render is made invisible to density contr
 0), and the :class:`StepVerdict` comes back unread. A step on which density control grows, prunes, relocates or resets
 still takes the host verdict: that work reads the host anyway. On a good step both ways are the same arithmetic.
 
-The render's ``info`` stays inside the step. The trainer keeps the loop, the clocks, checkpoints, evaluation and
-logging: it times the phases and looks at the loss terms before backward through :class:`StepHooks`.
+Every ``PARAMETER_SCAN_EVERY`` steps a full scan removes Gaussians with non-finite values first (the rasterizer finds
+those it reads on the other steps). The render's ``info`` stays inside the step. The trainer keeps the loop, the
+clocks, checkpoints, evaluation and logging (it writes the bad steps out and stops a run that diverges): it times the
+phases and looks at the loss terms before backward through :class:`StepHooks`.
 
 >>> import copy
 >>> from kc_splatfacto.data.demo import DemoDataParserConfig
@@ -53,6 +56,11 @@ from kc_splatfacto.render.errors import NonFiniteInputError
 
 GRAD_OVERFLOW = 1e18
 """a gradient this large would overflow Adam's squared-gradient average in float32 (1e36 < 3.4e38 just fits)"""
+PARAMETER_SCAN_EVERY = 100
+"""steps between full scans of the parameters for NaN/inf (the rasterizer reports what it reads every step)"""
+VERDICTS_READ_EVERY = 100
+"""most steps whose device verdicts wait unread (``machine.step_verdict``; the trainer also has them read at each log,
+evaluation and checkpoint)"""
 
 # a skipped (non-finite) step still advances the schedules, which torch reports as a misuse when no optimizer step
 # came before (a bad first step); it is deliberate here
@@ -101,6 +109,47 @@ class StepVerdict:
         return f"non-finite or overflowing gradient of {bad}"
 
 
+@dataclass(frozen=True)
+class BadStep:
+    """A step whose update was skipped, as the trainer records it: ``step`` (the steps taken with it, the records'
+    1-based count), why, and how many bad steps in a row it ends (``consecutive``)."""
+
+    step: int
+    reason: str
+    consecutive: int
+
+
+class StepVerdicts:
+    """Every step's verdict, in step order: a host verdict is known at once, a device verdict waits unread
+    (:attr:`waiting`) until :meth:`read`; the bad steps come out as :class:`BadStep` records, counted in a row (a good
+    step ends the row)."""
+
+    def __init__(self) -> None:
+        self.waiting: list[tuple[int, StepVerdict]] = []
+        self.bad_in_a_row = 0
+
+    def _judge(self, step: int, reason: str | None) -> BadStep | None:
+        if reason is None:
+            self.bad_in_a_row = 0
+            return None
+        self.bad_in_a_row += 1
+        return BadStep(step, reason, self.bad_in_a_row)
+
+    def read(self) -> list[BadStep]:
+        """Read the device verdicts waiting (one synchronisation), in step order: the bad steps among them."""
+        waiting, self.waiting = self.waiting, []
+        return [bad for step, verdict in waiting if (bad := self._judge(step, verdict.reason())) is not None]
+
+    def host(self, step: int, reason: str | None) -> list[BadStep]:
+        """A verdict the host took (``reason`` None: good), after those waiting (they come first): the bad steps."""
+        bad = self.read()
+        this = self._judge(step, reason)
+        return bad if this is None else [*bad, this]
+
+    def wait(self, step: int, verdict: StepVerdict) -> None:
+        self.waiting.append((step, verdict))
+
+
 @dataclass
 class StepResult:
     """One step's outcome.
@@ -112,8 +161,11 @@ class StepResult:
         batch: the batch the step rendered; None on a skipped step.
         density: the counts of what density control did (default: duplicated, split, pruned, opacity_reset; mcmc:
             relocated, added); empty on a skipped step.
-        verdict: a device verdict not yet read (its step's update was applied only if it is good); None when the
+        verdict: the step's device verdict (its update was applied only if it is good), read or not; None when the
             host took the verdict (then ``skipped`` says it).
+        bad_steps: the bad steps whose verdicts this step read, in step order (this one's included when known).
+        known_bad: this step's update is known not to have been applied (``skipped``, or its device verdict read
+            bad at once).
     """
 
     skipped: str | None
@@ -122,6 +174,8 @@ class StepResult:
     batch: dict[str, Any] | None = None
     density: dict[str, int] = field(default_factory=dict)
     verdict: StepVerdict | None = None
+    bad_steps: list[BadStep] = field(default_factory=list)
+    known_bad: bool = False
 
 
 class TrainingState:
@@ -148,6 +202,8 @@ class TrainingState:
         self._build_optimizers()
         self.strategy.check_sanity(model.gauss_params, self.optimizers)
         self.strategy_state: dict[str, Any] = self.strategy.initialize_state(scene_scale=model.scene_scale)
+        #: the steps' verdicts in step order, the device's waiting unread (:meth:`read_verdicts`)
+        self.verdicts = StepVerdicts()
 
     def _build_optimizers(self) -> None:
         # nominal schedules (nerfstudio's): steps_scale only, never the run's length, so a short run is the first
@@ -157,11 +213,23 @@ class TrainingState:
         )
 
     # ----------------------------------------------------------------------------------------------- the step
-    def step(self, step: int, batch: dict[str, Any], hooks: StepHooks | None = None) -> StepResult:
+    def step(self, step: int, batch: dict[str, Any] | Callable[[], dict[str, Any]], hooks: StepHooks | None = None,
+             read_verdicts: bool = False) -> StepResult:
         """Take training step ``step`` (0-based) on ``batch`` (``camera``, ``image``, ``image_idx``, optionally
-        ``mask``): render, loss, backward, update, density control (module docstring). A step whose render meets
-        non-finite Gaussians removes them and is skipped."""
+        ``mask``; or a function that draws it, called after the parameter scan): render, loss, backward, update,
+        density control (module docstring). Every ``PARAMETER_SCAN_EVERY`` steps a full scan first removes Gaussians
+        whose values render finitely but are not (an infinite opacity logit, ...): a step that removed any is skipped
+        before its batch is drawn. A step whose render meets non-finite Gaussians removes them and is skipped.
+        ``read_verdicts``: read every device verdict waiting after this step (the trainer's logs, evaluations and
+        checkpoints need them); they are read anyway when ``VERDICTS_READ_EVERY`` wait."""
         hooks = hooks or StepHooks()
+        if step % PARAMETER_SCAN_EVERY == 0:
+            removed = self.remove_non_finite_gaussians()
+            hooks.lap("optimizer")
+            if removed:
+                return self.skip(step, f"non-finite parameters: {removed} Gaussians removed")
+        if callable(batch):
+            batch = batch()
         model = self.model
         model.set_step(step)
         try:
@@ -170,7 +238,7 @@ class TrainingState:
             removed = self.remove_non_finite_gaussians()
             if not removed:  # a non-finite camera, not a parameter: a real error
                 raise
-            return self.skip(f"non-finite parameters: {removed} Gaussians removed")
+            return self.skip(step, f"non-finite parameters: {removed} Gaussians removed")
         self.strategy.step_pre_backward(model.gauss_params, self.optimizers, self.strategy_state, step,
                                         outputs["info"])
         hooks.lap("render")
@@ -183,10 +251,12 @@ class TrainingState:
         hooks.lap("backward")
         verdict = self._verdict(loss, terms.detach(), list(loss_dict), outputs["rgb"])
         on_device = self._verdict_on_device_at(step)
+        bad_steps: list[BadStep] = []
         if not on_device:
             problem = verdict.reason()  # the host waits for the step here
             if problem is not None:
-                return self.skip(problem)
+                return self.skip(step, problem)
+            bad_steps = self.verdicts.host(step + 1, None)
         found_inf = (~verdict.good).to(torch.float32) if on_device else None
         for optimizer in self.optimizers.values():
             self._optimizer_step(optimizer, found_inf)
@@ -195,18 +265,29 @@ class TrainingState:
         hooks.lap("optimizer")
         density = self._density_control(step, outputs["info"], verdict.good if on_device else None)
         hooks.lap("density_control")
+        known_bad = False
+        if on_device:
+            self.verdicts.wait(step + 1, verdict)
+            if read_verdicts or len(self.verdicts.waiting) >= VERDICTS_READ_EVERY:
+                bad_steps = self.verdicts.read()
+                known_bad = bool(bad_steps) and bad_steps[-1].step == step + 1
         render = {k: v for k, v in outputs.items() if k != "info"}
         losses = {k: v.detach() for k, v in loss_dict.items()}
         return StepResult(skipped=None, losses=losses, outputs=render, batch=batch, density=density,
-                          verdict=verdict if on_device else None)
+                          verdict=verdict if on_device else None, bad_steps=bad_steps, known_bad=known_bad)
 
-    def skip(self, reason: str) -> StepResult:
-        """A step without an update: the gradients dropped, the schedules advanced (a skipped step still counts)."""
+    def read_verdicts(self) -> list[BadStep]:
+        """Read the device verdicts waiting (one synchronisation): the bad steps among them, in step order."""
+        return self.verdicts.read()
+
+    def skip(self, step: int, reason: str) -> StepResult:
+        """Step ``step`` without an update: the gradients dropped, the schedules advanced (a skipped step still
+        counts), the bad step recorded after the verdicts waiting."""
         self.model.zero_grad(set_to_none=True)
         with warnings.catch_warnings():  # only around a skipped step: a filter change re-arms once-only warnings
             warnings.filterwarnings("ignore", message=_SCHEDULE_BEFORE_OPTIMIZER)
             self._advance_schedules()
-        return StepResult(skipped=reason)
+        return StepResult(skipped=reason, bad_steps=self.verdicts.host(step + 1, reason), known_bad=True)
 
     def _advance_schedules(self) -> None:
         for scheduler in self.schedulers.values():

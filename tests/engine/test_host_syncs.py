@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from kc_splatfacto.engine import trainer as trainer_module
+from kc_splatfacto.engine import training_state
 from kc_splatfacto.engine.trainer import Trainer
 from tests.conftest import PROJECT_ROOT
 from tests.training_utils import tiny_demo_config
@@ -61,7 +61,7 @@ def _warm_trainer(method: str, tmp_path, step_verdict: str = "host") -> Trainer:
 def test_an_ordinary_step_keeps_at_most_the_step_verdict(method, step_verdict, tmp_path):
     trainer = _warm_trainer(method, tmp_path, step_verdict)
     steps = list(range(30, 38))
-    assert all(s % trainer_module.PARAMETER_SCAN_EVERY for s in steps)
+    assert all(s % training_state.PARAMETER_SCAN_EVERY for s in steps)
     found = host_syncs.count_ordinary_steps(trainer, steps, warm=2)
     counted = len(steps) - 2
     assert _by_function(found.ours(), counted) == KEPT[step_verdict]

@@ -151,7 +151,7 @@ def test_the_trainer_skips_a_bad_update_on_the_device_and_reports_it_at_the_next
 
     def recording(step):
         snapshots[step] = trainer.model.gaussian_state()  # detached copies
-        waiting[step] = len(trainer._unread_verdicts)
+        waiting[step] = len(trainer.state.verdicts.waiting)
         return original(step)
 
     trainer.train_iteration = recording

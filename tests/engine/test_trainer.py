@@ -233,9 +233,9 @@ def test_non_finite_parameters_remove_their_gaussians(tmp_path):
 
 def test_non_finite_parameters_that_render_finitely_are_removed_by_the_periodic_scan(tmp_path, monkeypatch):
     # an infinite opacity logit renders as opacity 1 with a zero gradient: the rasterizer never sees a NaN/inf
-    import kc_splatfacto.engine.trainer as trainer_module
+    import kc_splatfacto.engine.training_state as training_state
 
-    monkeypatch.setattr(trainer_module, "PARAMETER_SCAN_EVERY", 5)
+    monkeypatch.setattr(training_state, "PARAMETER_SCAN_EVERY", 5)
     trainer, n0, records = _train_with_infinite_rows(tmp_path, "opacities", rows=2, at_step=2)
     removals = [r for r in records if r["kind"] == "bad_step" and "2 Gaussians removed" in r["reason"]]
     assert [r["step"] for r in removals] == [6]  # found by the scan of step 5 (0-based), reported as step 6

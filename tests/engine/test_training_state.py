@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from kc_splatfacto.engine.training_state import StepHooks, TrainingState
+from kc_splatfacto.engine.training_state import PARAMETER_SCAN_EVERY, StepHooks, TrainingState
 from kc_splatfacto.model.mcmc import GaussianCapError, MCMCStrategy
 from kc_splatfacto.model.strategy import DefaultStrategy
 from tests.training_utils import demo_pipeline
@@ -112,9 +112,14 @@ def test_hooks_see_every_phase_in_order_and_the_loss_before_backward(tmp_path):
         torch.testing.assert_close(loss, torch.stack(list(loss_dict.values())).sum())
         seen.append(("loss", tuple(image.shape)))
 
-    result = state.step(0, pipeline.datamanager.next_train(), StepHooks(lap=seen.append, inspect_loss=inspect))
-    assert seen == ["render", "losses", ("loss", tuple(result.outputs["rgb"].shape)), "backward", "optimizer",
-                    "density_control"]
+    result = state.step(1, pipeline.datamanager.next_train(), StepHooks(lap=seen.append, inspect_loss=inspect))
+    phases = ["render", "losses", ("loss", tuple(result.outputs["rgb"].shape)), "backward", "optimizer",
+              "density_control"]
+    assert seen == phases
+    seen.clear()
+    state.step(PARAMETER_SCAN_EVERY, pipeline.datamanager.next_train(), StepHooks(lap=seen.append,
+                                                                                 inspect_loss=inspect))
+    assert seen == ["optimizer", *phases]  # the parameter scan first, timed with the optimizer's phase
 
 
 def test_a_non_finite_loss_skips_the_update_but_not_the_schedules(tmp_path):
@@ -196,3 +201,29 @@ def test_the_step_s_calls_have_one_owner():
                for attr, names in owners.items()}
     assert {attr: names for attr, names in outside.items() if names} == {}
     assert {"step_pre_backward", "step_post_backward", "backward", "step"} <= set(owners)
+
+
+class _Verdict:
+    """A device verdict read as ``reason()`` (None: good)."""
+
+    def __init__(self, reason):
+        self._reason = reason
+
+    def reason(self):
+        return self._reason
+
+
+def test_verdicts_come_out_in_step_order_and_count_bad_steps_in_a_row():
+    from kc_splatfacto.engine.training_state import BadStep, StepVerdicts
+
+    verdicts = StepVerdicts()
+    verdicts.wait(1, _Verdict("non-finite loss"))
+    verdicts.wait(2, _Verdict("non-finite render"))
+    # a host verdict reads those waiting first: steps 1 and 2, then its own 3
+    assert verdicts.host(3, "non-finite parameters") == [BadStep(1, "non-finite loss", 1),
+                                                        BadStep(2, "non-finite render", 2),
+                                                        BadStep(3, "non-finite parameters", 3)]
+    verdicts.wait(4, _Verdict(None))  # a good step ends the row
+    verdicts.wait(5, _Verdict("non-finite loss"))
+    assert verdicts.read() == [BadStep(5, "non-finite loss", 1)] and verdicts.waiting == []
+    assert verdicts.host(6, None) == [] and verdicts.bad_in_a_row == 0

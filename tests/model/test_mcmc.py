@@ -13,7 +13,7 @@ import torch
 from scipy.spatial.transform import Rotation
 from scipy.special import binom
 
-from kc_splatfacto.engine import trainer as trainer_module
+from kc_splatfacto.engine import training_state
 from kc_splatfacto.engine.optimizers import OptimizersConfig
 from kc_splatfacto.engine.trainer import Trainer
 from kc_splatfacto.engine.training_state import TrainingState
@@ -295,6 +295,6 @@ def test_an_ordinary_mcmc_step_adds_no_host_synchronisation(tmp_path, step_verdi
     for step in range(30):  # warm
         trainer.train_iteration(step)
     steps = list(range(30, 36))
-    assert all(s % trainer_module.PARAMETER_SCAN_EVERY for s in steps)
+    assert all(s % training_state.PARAMETER_SCAN_EVERY for s in steps)
     found = host_syncs.count_ordinary_steps(trainer, steps, warm=2)  # as CUDA counts them (tests/engine)
     assert _by_function(found.ours(), len(steps) - 2) == KEPT[step_verdict]  # the step verdict's, as without MCMC
