@@ -30,7 +30,7 @@ def main(argv: list[str]) -> int:
     from kc_splatfacto.cli.eval import render_view
     from kc_splatfacto.engine.run_io import load_run
     from kc_splatfacto.metrics import psnr
-    from kc_splatfacto.model.splatfacto import composite_with_background
+    from kc_splatfacto.losses.layout import composite_with_background
     from sweep_report import labelled_run_dir  # benchmarks/ is on sys.path when this runs as a script
 
     columns: dict[str, tuple[int, list[np.ndarray], list[float]]] = {}  # label -> (step, renders, PSNRs) per view

@@ -40,7 +40,7 @@ from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.run_guard import check_writable_folder
 from kc_splatfacto.engine.run_io import load_run
 from kc_splatfacto.errors import UserError
-from kc_splatfacto.model.splatfacto import composite_with_background
+from kc_splatfacto.losses.layout import composite_with_background
 
 #: OpenCV FourCC of the fallback writer; 'mp4v' (MPEG-4 part 2) ships with every opencv-python wheel.
 MP4_FOURCC = "mp4v"

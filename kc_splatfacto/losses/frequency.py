@@ -45,7 +45,7 @@ from torch import Tensor, nn
 from kc_splatfacto import backend
 from kc_splatfacto.losses import _fused_frequency as fused
 from kc_splatfacto.losses._frequency_autograd import Moments, level_moments, weighted_band_l1
-from kc_splatfacto.losses.layout import channels_first
+from kc_splatfacto.losses.layout import channels_first, composite_with_background
 from kc_splatfacto.losses.wavelets import (
     VARIANCE_REL_EPS,
     WaveletCoeffs,
@@ -678,8 +678,7 @@ class FrequencyLoss(nn.Module):
             if background is None:
                 raise ValueError("an RGBA ground truth needs the background the render was composited over "
                                  "(compare(..., background=...))")
-            alpha = gt[..., 3:4]
-            gt = gt[..., :3] * alpha + background.to(gt) * (1.0 - alpha)
+            gt = composite_with_background(gt, background)
         if gt.shape != render.shape:
             raise ValueError(f"render {tuple(render.shape)} and ground truth {tuple(gt.shape)} must have the same "
                              "[..., H, W, 3]")

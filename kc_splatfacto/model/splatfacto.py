@@ -26,7 +26,7 @@ from kc_splatfacto.losses.frequency import (
     mean_band_kurtosis,
     target_key,
 )
-from kc_splatfacto.losses.layout import channels_first
+from kc_splatfacto.losses.layout import channels_first, composite_with_background
 from kc_splatfacto.losses.wavelets import dropped_levels_phrase, supported_levels
 from kc_splatfacto.metrics import mean_ssim, psnr
 from kc_splatfacto.model.gaussians import init_gaussian_params
@@ -264,23 +264,6 @@ def downscale_mask(mask: torch.Tensor, d: int) -> torch.Tensor:
     if d == 1:
         return mask
     return -F.max_pool2d(-mask.permute(2, 0, 1)[None], kernel_size=d, stride=d)[0].permute(1, 2, 0)
-
-
-def composite_with_background(
-    image: torch.Tensor, background: torch.Tensor, premultiplied: bool = False
-) -> torch.Tensor:
-    """[H, W, 4] RGBA -> [H, W, 3] ``rgb * a + background * (1 - a)`` (``rgb`` already times ``a`` when
-    ``premultiplied``); [H, W, 3] is returned as is.
-
-    nerfstudio's ``composite_with_background``: the GT is composited over the background the render used.
-    """
-    if image.shape[-1] == 3:
-        return image
-    if image.shape[-1] != 4:
-        raise ValueError(f"ground truth must be [H, W, 3] or [H, W, 4] (RGBA), got {tuple(image.shape)}")
-    alpha = image[..., 3:4]
-    rgb = image[..., :3] if premultiplied else image[..., :3] * alpha
-    return rgb + background.to(image) * (1.0 - alpha)
 
 
 def host_to_device(tensor: torch.Tensor, device: torch.device) -> torch.Tensor:

@@ -46,7 +46,7 @@ def test_images_are_uint8_lazy_and_match_the_files(tmp_path):
 
 
 def test_rgba_keeps_its_alpha_for_the_model_to_composite(tmp_path):
-    from kc_splatfacto.model.splatfacto import composite_with_background
+    from kc_splatfacto.losses.layout import composite_with_background
 
     rng = np.random.default_rng(1)
     rgba = rng.integers(0, 256, size=(8, 10, 4), dtype=np.uint8)
