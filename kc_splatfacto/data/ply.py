@@ -1,9 +1,9 @@
 """The one PLY reader: a PLY file's ``vertex`` element as a numpy structured array.
 
 Used for seed point clouds (``read_ply_points``: xyz and colours, e.g. a transforms.json ``ply_file_path``) and, by
-:func:`kc_splatfacto.model.ply.import_ply`, for Inria-style 3DGS files. Reads ``ascii``, ``binary_little_endian``
-and ``binary_big_endian`` files with scalar properties in the vertex element; other elements (faces, edges) may
-follow the vertices and are not read. Every malformed file is a ``ValueError`` naming it.
+:func:`kc_splatfacto.model.gaussians_ply.import_ply`, for Inria-style 3DGS files. Reads ``ascii``,
+``binary_little_endian`` and ``binary_big_endian`` files with scalar properties in the vertex element; other elements
+(faces, edges) may follow the vertices and are not read. Every malformed file is a ``ValueError`` naming it.
 """
 
 from __future__ import annotations

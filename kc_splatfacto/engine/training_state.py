@@ -52,7 +52,7 @@ from kc_splatfacto.engine.optimizers import OptimizersConfig
 from kc_splatfacto.model import ops
 from kc_splatfacto.model.splatfacto import SplatfactoModel
 from kc_splatfacto.model.strategy import DensityStrategy, NoGaussiansLeftError, as_density_strategy
-from kc_splatfacto.render.errors import NonFiniteInputError
+from kc_splatfacto.render.non_finite import NonFiniteInputError
 
 GRAD_OVERFLOW = 1e18
 """a gradient this large would overflow Adam's squared-gradient average in float32 (1e36 < 3.4e38 just fits)"""

@@ -22,7 +22,9 @@ from typing import Any, Dict, Literal, Optional, Tuple, Type, Union
 
 import torch
 from nerfstudio.cameras.cameras import Cameras
-from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel, SplatfactoModelConfig, num_sh_bases
+from nerfstudio.models.splatfacto import RGB2SH, num_sh_bases
+from nerfstudio.models.splatfacto import SplatfactoModel as NerfstudioSplatfactoModel  # not ours: model/splatfacto.py
+from nerfstudio.models.splatfacto import SplatfactoModelConfig as NerfstudioSplatfactoModelConfig
 
 from kc_splatfacto.losses.frequency import FrequencyLoss, FrequencyLossConfig, target_key
 from kc_splatfacto.model.mcmc import mcmc_regularization, splatfacto_mcmc
@@ -40,7 +42,7 @@ LPIPS_METRICS = ("lpips", "cc_lpips")
 
 
 @dataclass
-class KCSplatfactoModelConfig(SplatfactoModelConfig):
+class KCSplatfactoModelConfig(NerfstudioSplatfactoModelConfig):
     """nerfstudio's Splatfacto with KC-3DGS's wavelet L1, kurtosis-concentration and cross-band covariance losses
     (``frequency``: their settings, the paper's by default; all three weights 0: Splatfacto)."""
 
@@ -73,7 +75,7 @@ def on_cuda(device: Any) -> bool:
     return torch.device(device).type == "cuda"
 
 
-class KCSplatfactoModel(SplatfactoModel):
+class KCSplatfactoModel(NerfstudioSplatfactoModel):
     """nerfstudio's ``SplatfactoModel`` + KC-3DGS's frequency losses, and a CPU path (see the module docstring)."""
 
     config: KCSplatfactoModelConfig

@@ -1,6 +1,6 @@
 """Render layer: gsplat-compatible ``rasterization()`` with reference (torch), cpu (compiled) and gsplat rasterizers."""
 
-from .errors import NonFiniteInputError
+from .non_finite import NonFiniteInputError
 from .projection import (
     Projection,
     fully_fused_projection,

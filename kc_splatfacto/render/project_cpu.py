@@ -29,7 +29,7 @@ from .constants import (
     SH_C3,
     SH_COLOR_OFFSET,
 )
-from .errors import NonFiniteInputError, non_finite_message
+from .non_finite import NonFiniteInputError, non_finite_message
 from .projection import RADIUS_MAX, ProjectedSplats
 from .sh import SplitSH
 

@@ -28,7 +28,7 @@ from torch import Tensor
 from kc_splatfacto import backend
 
 from .constants import EPS2D, EXPECTED_DEPTH_ALPHA_MIN, FAR_PLANE, NEAR_PLANE, TILE_SIZE
-from .errors import NonFiniteInputError, non_finite_message
+from .non_finite import NonFiniteInputError, non_finite_message
 from .projection import ProjectedSplats, fully_fused_projection
 from .rasterize_torch import rasterize_to_pixels_torch
 from .sh import SplitSH, sh_to_rgb

@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 
 from kc_splatfacto.cli import export as kc_export
 from kc_splatfacto.engine.run_io import load_run
-from kc_splatfacto.model.ply import export_ply, import_ply
+from kc_splatfacto.model.gaussians_ply import export_ply, import_ply
 from tests._demo_runs import demo_run
 from tests.model.test_export_formats import read_compressed_ply, read_splat, read_spz, sigmoid
 

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from kc_splatfacto.data.ply import read_ply_points, read_ply_vertices
-from kc_splatfacto.model.ply import export_ply, import_ply, ply_property_names
+from kc_splatfacto.model.gaussians_ply import export_ply, import_ply, ply_property_names
 
 trimesh = pytest.importorskip("trimesh")
 

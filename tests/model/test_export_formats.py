@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 
 from kc_splatfacto.data.ply import read_ply_vertices
 from kc_splatfacto.model.export import COMPRESSED_PLY_MIN_OPACITY, export_gaussians, format_from_path
-from kc_splatfacto.model.ply import import_ply
+from kc_splatfacto.model.gaussians_ply import import_ply
 
 SH_C0 = 0.28209479177387814
 N = 3000  # a few thousand Gaussians, SH degree 3 (15 rest coefficients per channel)

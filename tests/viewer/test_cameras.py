@@ -78,7 +78,7 @@ def test_camera_path_json_is_nerfstudios_format(demo_cameras):
 def test_splats_are_what_the_ply_export_holds(tmp_path):
     """Centres, covariances, colours and opacities from kc-export's PLY, read back by trimesh and recomputed here
     with scipy's rotations, equal splat_arrays of the model."""
-    from kc_splatfacto.model.ply import export_ply
+    from kc_splatfacto.model.gaussians_ply import export_ply
     from kc_splatfacto.model.splatfacto import SplatfactoModelConfig
 
     torch.manual_seed(0)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from kc_splatfacto.model.ply import export_ply, import_ply, ply_property_names
+from kc_splatfacto.model.gaussians_ply import export_ply, import_ply, ply_property_names
 
 
 def _random_params(n: int = 50, k: int = 15, seed: int = 0) -> dict[str, torch.Tensor]:
