@@ -55,6 +55,20 @@ def demo_pipeline(tmp_path: Path, method: str = "kc-splatfacto", seed: int = 0, 
     return pipeline, config
 
 
+def stop_after(trainer, steps_taken: int) -> None:
+    """Have ``trainer`` stop as Ctrl-C stops it (finish the step, save, return) once ``steps_taken`` steps are
+    taken: its own ``request_stop`` from inside the loop."""
+    take_step = trainer.train_iteration
+
+    def stopping(step: int):
+        result = take_step(step)
+        if step + 1 == steps_taken:
+            trainer.request_stop()
+        return result
+
+    trainer.train_iteration = stopping
+
+
 def poison_loss_at(model, steps) -> None:
     """The model's loss is NaN at each step in ``steps`` (its render and gradients otherwise as usual)."""
     original = model.get_loss_dict

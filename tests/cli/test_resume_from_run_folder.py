@@ -23,6 +23,7 @@ from kc_splatfacto.engine.checkpoints import CHECKPOINT_DIR, list_checkpoints, l
 from kc_splatfacto.engine.config_file import read_config_file
 from kc_splatfacto.engine.metrics_log import read_metrics
 from kc_splatfacto.engine.trainer import Trainer, TrainerConfig
+from tests.training_utils import stop_after
 
 TINY = {"width": 40, "height": 30, "num_cameras": 4, "num_points": 50}
 STEPS, STOP_AT = 6, 3
@@ -80,15 +81,7 @@ def shared(tmp_path_factory) -> SharedRun:
     reference = gaussians(root / "outputs" / "scene" / "splatfacto" / "full")
     # the same command line, stopped after step STOP_AT as Ctrl-C stops it (finish the step, save, return)
     trainer = Trainer(kc_train.parse_command_line(train_args(scene, root / "outputs")))
-    take_step = trainer.train_iteration
-
-    def stop_after(step: int):
-        result = take_step(step)
-        if step + 1 == STOP_AT:
-            trainer.request_stop()
-        return result
-
-    trainer.train_iteration = stop_after
+    stop_after(trainer, STOP_AT)
     stopped = trainer.train()
     assert trainer.interrupted and [p.name for p in list_checkpoints(stopped / CHECKPOINT_DIR)] == [
         f"step-{STOP_AT:09d}.ckpt"]

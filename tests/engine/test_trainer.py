@@ -13,7 +13,7 @@ from kc_splatfacto.engine.trainer import Trainer, TrainingDivergedError
 from kc_splatfacto.losses.frequency import FrequencyLossConfig
 from kc_splatfacto.lpips import lpips_available
 from kc_splatfacto.model.strategy import NoGaussiansLeftError
-from tests.training_utils import poison_loss_at, tiny_demo_config
+from tests.training_utils import poison_loss_at, stop_after, tiny_demo_config
 
 
 @pytest.mark.parametrize("sh_views_per_coefficient", [0.0, 2.0])
@@ -31,15 +31,7 @@ def test_resume_is_bit_identical_to_an_uninterrupted_run(tmp_path, sh_views_per_
     full.train()
 
     stopped = Trainer(config("stopped"))
-    original = stopped.train_iteration
-
-    def stop_after_17(step):
-        result = original(step)
-        if step == 16:
-            stopped.request_stop()
-        return result
-
-    stopped.train_iteration = stop_after_17
+    stop_after(stopped, 17)
     run_dir = stopped.train()
     assert stopped.interrupted
     assert [p.name for p in list_checkpoints(run_dir / "nerfstudio_models")] == ["step-000000017.ckpt"]

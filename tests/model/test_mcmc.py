@@ -23,7 +23,7 @@ from kc_splatfacto.model.relocation import MAX_COPIES, compute_relocation, reloc
 from kc_splatfacto.model.splatfacto import SplatfactoModelConfig
 from method_configs import splatfacto_configs
 from tests.engine.test_host_syncs import KEPT, _by_function, host_syncs
-from tests.training_utils import tiny_demo_config
+from tests.training_utils import stop_after, tiny_demo_config
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
 
@@ -229,15 +229,7 @@ def test_resume_of_an_mcmc_run_is_bit_identical(tmp_path):
     full = Trainer(_tiny_mcmc_config(tmp_path / "full", iterations=20, cap=2150))
     full.train()
     stopped = Trainer(_tiny_mcmc_config(tmp_path / "stopped", iterations=20, cap=2150))
-    train_iteration = stopped.train_iteration
-
-    def stop_after_13(step):
-        result = train_iteration(step)
-        if step == 12:
-            stopped.request_stop()
-        return result
-
-    stopped.train_iteration = stop_after_13
+    stop_after(stopped, 13)
     run_dir = stopped.train()
     resume_config = _tiny_mcmc_config(tmp_path / "stopped", iterations=20, cap=2150)
     resume_config.load_dir = run_dir / "nerfstudio_models"
