@@ -627,12 +627,10 @@ class FrequencyLoss(nn.Module):
         if setup is None:  # no fused term, or an image too small for any level: the level-by-level zero loss
             return FrequencyStage(self, target, (), tuple(fused_terms) + tuple(level_terms), ())
         plan, slots, l1_weights = setup
-        present = tuple(name in names for name in fused.OUTPUTS)  # which of the slot target's tensors are read
-        tensors = tuple(t for t, here in zip((slots.weighted_bands, slots.kurtosis, slots.l_cov), present)
-                        if here and t is not None)
-        weights = {term.name: weight for term, weight in fused_terms}
-        return FrequencyStage(self, target, names, tuple(level_terms), tensors, plan, l1_weights, present,
-                              (weights.get("kc_loss", 0.0), weights.get("cbc_loss", 0.0)))
+        # the slot target's tensors the fused terms read, in fused.OUTPUTS' order (each is computed when its term is)
+        read = zip(fused.OUTPUTS, (slots.weighted_bands, slots.kurtosis, slots.l_cov))
+        tensors = tuple(fused._present(t) for name, t in read if name in names)
+        return FrequencyStage(self, target, names, tuple(level_terms), tensors, plan, l1_weights)
 
     def split_terms(self, pred: Tensor) -> tuple[list[tuple[FrequencyTerm, float]], list[tuple[FrequencyTerm, float]]]:
         """The active terms (with their weights) as (those the fused Function computes for ``pred``, those computed
@@ -760,10 +758,6 @@ class FrequencyStage:
     tensors: tuple[Tensor, ...]
     plan: fused.BandPlan | None = None
     l1_weights: Tensor | None = None
-    present: tuple[bool, ...] = ()
-    """which of the slot target's (weighted bands, kurtosis, L_cov) ``tensors`` holds"""
-    term_weights: tuple[float, float] = (0.0, 0.0)
-    """(kc, cbc) weights of the fused Function (0: the term is not fused)"""
 
     @property
     def graph_key(self) -> Hashable:
@@ -775,9 +769,12 @@ class FrequencyStage:
         if not self.fused_names or self.plan is None:
             return ()
         given = iter(tensors)
-        slots = fused.SlotTarget(*(next(given) if here else None for here in self.present))
+        slots = fused.SlotTarget(*(next(given) if name in self.fused_names else None for name in fused.OUTPUTS))
+        c = self.loss.config
+        kc_weight = c.kc_weight if "kc_loss" in self.fused_names else 0.0  # 0: computed level by level, if at all
+        cbc_weight = c.cbc_weight if "cbc_loss" in self.fused_names else 0.0
         image = fused.as_planes(pred.to(_compute_dtype(pred.dtype)))
-        outputs = fused.FusedFrequencyTerms.apply(image, self.plan, slots, self.l1_weights, *self.term_weights)
+        outputs = fused.FusedFrequencyTerms.apply(image, self.plan, slots, self.l1_weights, kc_weight, cbc_weight)
         by_name = dict(zip(fused.OUTPUTS, outputs))
         return tuple(by_name[name] for name in self.fused_names)
 
