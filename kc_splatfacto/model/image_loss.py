@@ -6,9 +6,9 @@ their backwards) is ~150 of them. :class:`ImageLoss` captures it once per traini
 ``torch.cuda.make_graphed_callables`` and replays it: a copy of the inputs and one graph launch each way. What the
 graph reads is passed in as tensors (the render, the ground truth, the ground truth's cached wavelet target), so one
 graph serves every training image of a size. The graph holds the frequency terms with a fused kernel
-(:meth:`FrequencyLoss.stage`); a term without one runs eagerly beside the replay. The first replay of each size is checked against the eager
-computation, values and gradient; a failed capture or a mismatch turns the graphs off for the run with one warning,
-and the eager loss goes on. Elsewhere (the CPU) the loss is always eager.
+(:meth:`FrequencyLoss.stage`); a term without one runs eagerly beside the replay. The first replay of each size is
+checked against the eager computation, values and gradient; a failed capture or a mismatch turns the graphs off for
+the run with one warning, and the eager loss goes on. Elsewhere (the CPU) the loss is always eager.
 """
 
 from __future__ import annotations
