@@ -292,6 +292,26 @@ def test_committed_config_files_load_with_their_scene(path):
     assert scene_of(comparable_dataparser(config)) == str(Path(raw.pipeline.datamanager.dataparser.data).resolve())
 
 
+@pytest.mark.parametrize("path", COMMITTED_CONFIGS, ids=lambda p: str(p.relative_to(REPO / "docs" / "results")))
+def test_committed_runs_are_finished(path):
+    """A committed study run is a whole run: its metrics.jsonl holds the test evaluation at the step its config.yml
+    ends at. A run cut off by a session's end restarts from scratch (checkpoints are not committed), so its partial
+    log must not be committed: a report or a reader of the folder would take it for a run."""
+    import json
+    import re
+
+    end = re.search(r"^max_num_iterations: (\d+)$", path.read_text(), re.MULTILINE)
+    assert end, f"{path}: no max_num_iterations line"
+    metrics = path.parent / "metrics.jsonl"
+    assert metrics.is_file(), f"{path.parent}: config.yml without metrics.jsonl"
+    records = [json.loads(line) for line in metrics.read_text().splitlines() if line.strip()]
+    final = [r for r in records if r.get("kind") == "eval" and r.get("step") == int(end[1])]
+    assert final and all(r.get("split", "test") == "test" for r in final), (
+        f"{metrics}: no test evaluation at step {end[1]}: an unfinished run; remove it from the commit "
+        "(kc-bench --resume runs it again)"
+    )
+
+
 def test_config_file_naming_classes_where_earlier_versions_had_them_loads(finished_run, tmp_path):
     text = (finished_run / "config.yml").read_text()
     for now, before in EARLIER_CLASS_NAMES.items():
